@@ -1,0 +1,231 @@
+"""Expression recordings: the 55 HACK expression names and the readers for capture files.
+
+The HACK expression space is ICT-FaceKit's 55 blendshapes (all ICT shapes but
+``PupilDilate_L/R``) in sorted name order.  Names follow ARKit with ``_L/_R``
+for the subject's left and right.  Mapping from ARKit's 52 names:
+``browInnerUp`` and ``cheekPuff`` drive both sides, ``cheekRaiser_L/R`` has
+no ARKit counterpart (left at 0), ARKit's ``tongueOut`` has no shape (dropped).
+
+Readable formats (:func:`read_expressions`):
+- Live Link Face CSV (``Timecode,BlendShapeCount,EyeBlinkLeft,...,HeadYaw,
+  HeadPitch,HeadRoll,...``), timecode ``HH:MM:SS:FF.fff`` where ``FF.fff`` is a
+  frame (with its fraction) at the timecode rate;
+- an ARKit CSV: columns named by ARKit (any case, optional ``blendShapes.``
+  prefix) with a ``time``/``timestamp`` (seconds) or ``frame`` column;
+- a HACK CSV: columns named by the 55 HACK names, same time columns;
+- a header-less CSV of 55 numbers per row, or a ``.npy`` array ``[T,55]``, in
+  HACK order (these need ``fps``).
+"""
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from data.io import CsvTable, InputError, load_npy, resample_uniform
+
+EXPRESSION_NAMES: tuple[str, ...] = (
+    "browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R",
+    "cheekPuff_L", "cheekPuff_R", "cheekRaiser_L", "cheekRaiser_R", "cheekSquint_L", "cheekSquint_R",
+    "eyeBlink_L", "eyeBlink_R", "eyeLookDown_L", "eyeLookDown_R", "eyeLookIn_L", "eyeLookIn_R",
+    "eyeLookOut_L", "eyeLookOut_R", "eyeLookUp_L", "eyeLookUp_R", "eyeSquint_L", "eyeSquint_R",
+    "eyeWide_L", "eyeWide_R", "jawForward", "jawLeft", "jawOpen", "jawRight", "mouthClose",
+    "mouthDimple_L", "mouthDimple_R", "mouthFrown_L", "mouthFrown_R", "mouthFunnel", "mouthLeft",
+    "mouthLowerDown_L", "mouthLowerDown_R", "mouthPress_L", "mouthPress_R", "mouthPucker", "mouthRight",
+    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthSmile_L",
+    "mouthSmile_R", "mouthStretch_L", "mouthStretch_R", "mouthUpperUp_L", "mouthUpperUp_R",
+    "noseSneer_L", "noseSneer_R",
+)
+NUM_EXPRESSIONS = len(EXPRESSION_NAMES)
+assert NUM_EXPRESSIONS == 55
+
+
+def arkit_name(hack_name: str) -> str | None:
+    """The ARKit blendshape that drives a HACK expression, or None if ARKit has none."""
+    base, _, side = hack_name.rpartition("_")
+    if side not in ("L", "R"):
+        return hack_name
+    if base in ("browInnerUp", "cheekPuff"):
+        return base
+    if base == "cheekRaiser":
+        return None
+    return base + ("Left" if side == "L" else "Right")
+
+
+# Range a blendshape weight may take before we call the file malformed: trackers
+# overshoot [0, 1] slightly, degrees or percent do not fit.
+WEIGHT_RANGE = (-0.1, 1.5)
+TIME_COLUMNS = ("time", "timestamp", "seconds", "time_s")
+HEAD_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll")
+_PREFIX = re.compile(r"^(blendshapes?[._:])", re.IGNORECASE)
+
+
+@dataclass
+class ExpressionTrack:
+    """An expression recording in the HACK space.
+
+    psi:      [T,55] float32 expression weights in ``EXPRESSION_NAMES`` order.
+    time:     [T] seconds, increasing.
+    fps:      frame rate (frames per second) of the recording.
+    head_ypr: [T,3] head yaw, pitch, roll in radians as recorded (Live Link
+              Face ``HeadYaw, HeadPitch, HeadRoll``), or None.
+    missing:  HACK names the file did not provide (left at 0).
+    """
+
+    psi: np.ndarray
+    time: np.ndarray
+    fps: float
+    head_ypr: np.ndarray | None = None
+    missing: list[str] = field(default_factory=list)
+    source: str = ""
+
+    def __len__(self) -> int:
+        return len(self.psi)
+
+    def resampled(self, fps: float) -> "ExpressionTrack":
+        """The same recording linearly resampled to a uniform grid at ``fps``."""
+        time, psi = resample_uniform(self.time, self.psi, fps)
+        head = None if self.head_ypr is None else resample_uniform(self.time, self.head_ypr, fps)[1]
+        return ExpressionTrack(psi.astype(np.float32), time, float(fps), head, list(self.missing), self.source)
+
+
+def _row(lines: list[int] | None, i: int) -> str:
+    """Where data row ``i`` is: a line of a CSV file, or a row of an array."""
+    return f"line {lines[i]}" if lines is not None else f"row {i}"
+
+
+def _check_weights(psi: np.ndarray, path: Path, names, lines: list[int] | None = None) -> None:
+    lo, hi = WEIGHT_RANGE
+    bad = (psi < lo) | (psi > hi)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise InputError(
+            f"{path}: column '{names[col]}', {_row(lines, row)}: weight {psi[row, col]:g} outside "
+            f"[{lo}, {hi}]; expected blendshape weights in [0, 1]"
+        )
+
+
+def parse_timecode(codes: list[str], path: Path, rate: float | None = None,
+                   lines: list[int] | None = None) -> np.ndarray:
+    """Seconds from ``HH:MM:SS:FF[.fff]`` timecodes.
+
+    The timecode rate (frames per second of ``FF``) is ``rate`` if given, else
+    the smallest standard rate above the largest frame number seen.
+    """
+    parts = []
+    for i, code in enumerate(codes):
+        m = re.fullmatch(r"(\d+):(\d+):(\d+)[:;](\d+(?:\.\d+)?)", code)
+        if not m:
+            raise InputError(f"{path}: column 'Timecode', {_row(lines, i)}: '{code}' is not HH:MM:SS:FF.fff")
+        parts.append([float(g) for g in m.groups()])
+    hms = np.array(parts)
+    if rate is None:
+        top = np.floor(hms[:, 3]).max()
+        rate = next((r for r in (24, 25, 30, 48, 50, 60, 120) if r > top), None)
+        if rate is None:
+            raise InputError(f"{path}: timecode frame {top:g} exceeds 120 fps; give timecode_fps=...")
+    seconds = hms[:, 0] * 3600 + hms[:, 1] * 60 + hms[:, 2] + hms[:, 3] / rate
+    seconds = np.where(seconds < seconds[0] - 43200, seconds + 86400, seconds)  # across midnight
+    return seconds - seconds[0]
+
+
+def _time_axis(table: CsvTable, fps: float | None, timecode_fps: float | None) -> tuple[np.ndarray, float]:
+    path = table.path
+    lower = {h.lower(): h for h in table.header}
+    if "timecode" in lower:
+        time = parse_timecode(table.text(lower["timecode"]), path, timecode_fps, table.lines)
+    elif any(c in lower for c in TIME_COLUMNS):
+        column = next(lower[c] for c in TIME_COLUMNS if c in lower)
+        time = table.numeric(column)
+        time = time - time[0]
+    elif "frame" in lower:
+        if fps is None:
+            raise InputError(f"{path}: column 'frame' but no time column; give fps=...")
+        frame = table.numeric(lower["frame"])
+        time = (frame - frame[0]) / fps
+    else:
+        if fps is None:
+            raise InputError(f"{path}: no 'Timecode', 'time' or 'frame' column; give fps=...")
+        time = np.arange(len(table)) / fps
+    steps = np.diff(time)
+    if (steps <= 0).any():
+        i = int(np.argmax(steps <= 0)) + 1
+        raise InputError(f"{path}: time does not increase at {_row(table.lines, i)} ({time[i]:g} s after {time[i - 1]:g} s)")
+    if fps is None:
+        if len(time) < 2:
+            raise InputError(f"{path}: one row only; give fps=...")
+        fps = float(1.0 / np.median(steps))
+    return time, float(fps)
+
+
+def _read_headerless(path: Path, fps: float | None) -> ExpressionTrack:
+    try:
+        psi = np.loadtxt(path, delimiter=",", ndmin=2)
+    except ValueError as e:
+        raise InputError(f"{path}: not a table of numbers ({e})") from None
+    if psi.shape[1] != NUM_EXPRESSIONS:
+        raise InputError(f"{path}: {psi.shape[1]} columns without a header, expected 55 in HACK order")
+    if fps is None:
+        raise InputError(f"{path}: a header-less table carries no frame rate; give fps=...")
+    _check_weights(psi, path, EXPRESSION_NAMES)
+    return ExpressionTrack(psi.astype(np.float32), np.arange(len(psi)) / fps, float(fps), source=str(path))
+
+
+def read_expressions(path: str | os.PathLike, fps: float | None = None,
+                     timecode_fps: float | None = None) -> ExpressionTrack:
+    """Read an expression recording (Live Link Face, ARKit, HACK CSV, or ``.npy``) into the HACK space."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    if path.suffix.lower() == ".npy":
+        psi = load_npy(path, 2, "expression weights [T,55]")
+        if psi.shape[1] != NUM_EXPRESSIONS:
+            raise InputError(f"{path}: array of shape {psi.shape}, expected expression weights [T,55]")
+        if fps is None:
+            raise InputError(f"{path}: a .npy expression array carries no frame rate; give fps=...")
+        _check_weights(psi, path, EXPRESSION_NAMES)
+        return ExpressionTrack(psi.astype(np.float32), np.arange(len(psi)) / fps, float(fps), source=str(path))
+    if path.suffix.lower() != ".csv":
+        raise InputError(f"{path}: unsupported expression format '{path.suffix}', expected .csv or .npy")
+
+    with open(path, encoding="utf-8-sig") as f:
+        first = f.readline().strip().split(",")
+    try:
+        [float(x) for x in first]
+        return _read_headerless(path, fps)
+    except ValueError:
+        pass
+
+    # Live Link Face writes "<timecode>,0" when tracking is lost: those frames are dropped
+    # (resampling to a uniform grid interpolates over them).
+    table = CsvTable(path, skip_row=lambda row: len(row) == 2 and row[1].strip() == "0")
+    lower = {_PREFIX.sub("", h).lower(): h for h in table.header}
+    psi = np.zeros((len(table), NUM_EXPRESSIONS), dtype=np.float64)
+    used, missing = [], []
+    columns = list(EXPRESSION_NAMES)
+    for k, name in enumerate(EXPRESSION_NAMES):
+        candidates = [name, arkit_name(name)]
+        column = next((lower[c.lower()] for c in candidates if c and c.lower() in lower), None)
+        if column is None:
+            missing.append(name)
+            continue
+        psi[:, k] = table.numeric(column)
+        columns[k] = column
+        used.append(column)
+    if not used:
+        raise InputError(
+            f"{path}: no expression columns found; expected ARKit names (e.g. EyeBlinkLeft, JawOpen) "
+            f"or HACK names (e.g. eyeBlink_L, jawOpen). Columns: {', '.join(table.header[:12])}"
+            + (" ..." if len(table.header) > 12 else "")
+        )
+    _check_weights(psi, path, columns, table.lines)
+    time, rate = _time_axis(table, fps, timecode_fps)
+    head = None
+    if all(table.has(c) for c in HEAD_COLUMNS):
+        head = np.stack([table.numeric(c) for c in HEAD_COLUMNS], axis=1)
+        if not head.any():  # Live Link Face writes zeros when head rotation was not recorded
+            head = None
+    return ExpressionTrack(psi.astype(np.float32), time, rate, head, missing, str(path))

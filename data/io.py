@@ -1,0 +1,290 @@
+"""File I/O shared by every tool: atomic writes, CSV tables, tau tracks.
+
+Conventions owned here:
+- Every file the project writes goes through :func:`atomic_path`: the data is
+  written to a temporary file beside the target and renamed over it, so a
+  crash never leaves a half-written output.
+- Bad input raises :class:`InputError`, whose message names the file, the
+  column or frame, and what was expected.
+- A *tau track* is the larynx slide over time: ``tau`` in UV units of the
+  larynx map (positive = up the neck, see ``models.rig``), sampled at an
+  explicit ``fps``.  On disk it is a CSV with a ``tau`` column and a ``time``
+  (seconds) or ``frame`` column (plus ``fps``), or a ``.npy`` vector with the
+  fps given by the caller.
+"""
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Mapping, Sequence
+
+import numpy as np
+
+
+class InputError(ValueError):
+    """Bad user input.  The message names the file, the column or frame, and what was expected."""
+
+
+# --------------------------------------------------------------------------- writing
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it over ``path`` if the block succeeds.
+
+    The temporary name keeps the target's suffix so that libraries choosing a
+    format by extension (OpenCV, numpy, matplotlib) behave as for the target.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file a normal mode
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, array)
+
+
+def save_npz(path: str | os.PathLike, compressed: bool = True, **arrays: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            (np.savez_compressed if compressed else np.savez)(f, **arrays)
+
+
+def write_csv(path: str | os.PathLike, columns: Mapping[str, Sequence], float_format: str = "%.6g") -> None:
+    """Write equal-length columns to a CSV file with a header row, atomically."""
+    names = list(columns)
+    arrays = [np.asarray(columns[n]) for n in names]
+    lengths = {len(a) for a in arrays}
+    if len(lengths) > 1:
+        raise ValueError(f"write_csv({path}): columns have different lengths {dict(zip(names, map(len, arrays)))}")
+
+    def cell(value) -> str:
+        if isinstance(value, (float, np.floating)):
+            return float_format % value
+        return str(value)
+
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(names)
+    for row in zip(*arrays):
+        writer.writerow([cell(v) for v in row])
+    write_text(path, buffer.getvalue())
+
+
+# --------------------------------------------------------------------------- reading
+
+
+class CsvTable:
+    """A CSV file with a header row, read as text; numeric access with precise errors.
+
+    ``skip_row(cells) -> bool`` drops data rows before validation (e.g. a
+    tracker's "lost" rows); their line numbers are kept in ``skipped_lines``.
+    Errors name the file, the column and the line of the file.
+    """
+
+    def __init__(self, path: str | os.PathLike, skip_row=None):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise InputError(f"{self.path}: file not found")
+        with open(self.path, newline="", encoding="utf-8-sig") as f:
+            numbered = [(n + 1, row) for n, row in enumerate(csv.reader(f)) if row and any(c.strip() for c in row)]
+        if not numbered:
+            raise InputError(f"{self.path}: empty file, expected a header row and data rows")
+        self.header = [h.strip() for h in numbered[0][1]]
+        body = numbered[1:]
+        self.skipped_lines = [n for n, row in body if skip_row is not None and skip_row(row)]
+        body = [(n, row) for n, row in body if skip_row is None or not skip_row(row)]
+        if not body:
+            raise InputError(f"{self.path}: no data rows below the header")
+        self.lines = [n for n, _ in body]
+        self.rows = [row for _, row in body]
+        for n, row in body:
+            if len(row) != len(self.header):
+                raise InputError(f"{self.path}: line {n} has {len(row)} cells, the header has {len(self.header)}")
+        self._index = {name: i for i, name in enumerate(self.header)}
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def has(self, name: str) -> bool:
+        return name in self._index
+
+    def text(self, name: str) -> list[str]:
+        if name not in self._index:
+            raise InputError(f"{self.path}: no column '{name}' (columns: {', '.join(self.header)})")
+        j = self._index[name]
+        return [row[j].strip() for row in self.rows]
+
+    def numeric(self, name: str) -> np.ndarray:
+        """Column ``name`` as float64; a non-number names its row."""
+        values = self.text(name)
+        out = np.empty(len(values))
+        for i, v in enumerate(values):
+            try:
+                out[i] = float(v)
+            except ValueError:
+                raise InputError(
+                    f"{self.path}: column '{name}', line {self.lines[i]}: expected a number, found '{v}'"
+                ) from None
+            if not np.isfinite(out[i]):
+                raise InputError(f"{self.path}: column '{name}', line {self.lines[i]}: value is {v}, expected finite")
+        return out
+
+
+def load_npy(path: str | os.PathLike, ndim: int | tuple[int, ...], what: str) -> np.ndarray:
+    """Load a ``.npy`` array, checking its rank; ``what`` describes the expected content."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as e:
+        raise InputError(f"{path}: not a readable .npy array ({e}); expected {what}") from None
+    ndims = (ndim,) if isinstance(ndim, int) else ndim
+    if array.ndim not in ndims:
+        raise InputError(f"{path}: array of shape {array.shape}, expected {what}")
+    if not np.issubdtype(array.dtype, np.number):
+        raise InputError(f"{path}: array of dtype {array.dtype}, expected numbers ({what})")
+    bad = ~np.isfinite(array)
+    if bad.any():
+        first = np.argwhere(bad)[0]
+        raise InputError(f"{path}: non-finite value at index {tuple(first.tolist())}; expected {what}")
+    return array
+
+
+# --------------------------------------------------------------------------- tau tracks
+
+
+@dataclass
+class TauTrack:
+    """Larynx slide over time.
+
+    tau:  [T] UV units of the larynx map, positive = up the neck.
+    time: [T] seconds, increasing.
+    fps:  nominal frame rate (frames per second).
+    """
+
+    tau: np.ndarray
+    time: np.ndarray
+    fps: float
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        self.tau = np.asarray(self.tau, dtype=np.float64)
+        self.time = np.asarray(self.time, dtype=np.float64)
+        if self.tau.shape != self.time.shape or self.tau.ndim != 1:
+            raise ValueError(f"TauTrack {self.source}: tau {self.tau.shape} and time {self.time.shape} must be equal 1-D")
+        if not self.fps > 0:
+            raise ValueError(f"TauTrack {self.source}: fps must be positive, got {self.fps}")
+
+    def __len__(self) -> int:
+        return len(self.tau)
+
+
+def _check_increasing(time: np.ndarray, table: CsvTable, column: str) -> None:
+    steps = np.diff(time)
+    if (steps <= 0).any():
+        i = int(np.argmax(steps <= 0)) + 1
+        raise InputError(
+            f"{table.path}: column '{column}' must increase, but line {table.lines[i]} ({time[i]:g}) "
+            f"is not after line {table.lines[i - 1]} ({time[i - 1]:g})"
+        )
+
+
+def read_tau_track(path: str | os.PathLike, fps: float | None = None) -> TauTrack:
+    """Read a tau track from CSV (``tau`` + ``time`` or ``frame`` [+ ``fps``]) or ``.npy``.
+
+    ``fps`` overrides the file's rate; it is required for ``.npy`` and for a
+    CSV with only a ``frame`` column and no ``fps`` column.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        tau = load_npy(path, (1, 2), "a tau track [T] or [T,1]")
+        if tau.ndim == 2:
+            if tau.shape[1] != 1:
+                raise InputError(f"{path}: array of shape {tau.shape}, expected a tau track [T] or [T,1]")
+            tau = tau[:, 0]
+        if fps is None:
+            raise InputError(f"{path}: a .npy tau track carries no frame rate; give fps=...")
+        return TauTrack(tau, np.arange(len(tau)) / fps, float(fps), str(path))
+    if path.suffix.lower() != ".csv":
+        raise InputError(f"{path}: unsupported tau track format '{path.suffix}', expected .csv or .npy")
+
+    table = CsvTable(path)
+    tau = table.numeric("tau")
+    file_fps = None
+    if table.has("fps"):
+        values = table.numeric("fps")
+        if not np.allclose(values, values[0]) or values[0] <= 0:
+            raise InputError(f"{path}: column 'fps' must hold one positive value, found {np.unique(values)[:5]}")
+        file_fps = float(values[0])
+    rate = fps if fps is not None else file_fps
+    if table.has("time"):
+        time = table.numeric("time")
+        _check_increasing(time, table, "time")
+        if rate is None:
+            if len(time) < 2:
+                raise InputError(f"{path}: one row only; give fps=... to know its frame rate")
+            rate = float(1.0 / np.median(np.diff(time)))
+    elif table.has("frame"):
+        frame = table.numeric("frame")
+        _check_increasing(frame, table, "frame")
+        if rate is None:
+            raise InputError(f"{path}: column 'frame' without a 'time' or 'fps' column; give fps=...")
+        time = frame / rate
+    else:
+        raise InputError(f"{path}: expected a 'time' (seconds) or 'frame' column beside 'tau'")
+    return TauTrack(tau, time, float(rate), str(path))
+
+
+def write_tau_track(path: str | os.PathLike, track: TauTrack, **extra: Sequence) -> None:
+    """Write ``frame,time,tau[,extra...],fps`` atomically (CSV) or the tau vector (``.npy``)."""
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        save_npy(path, track.tau.astype(np.float32))
+        return
+    columns = {"frame": np.arange(len(track)), "time": track.time, "tau": track.tau}
+    columns.update(extra)
+    columns["fps"] = np.full(len(track), track.fps)
+    write_csv(path, columns)
+
+
+def resample_uniform(time: np.ndarray, values: np.ndarray, fps: float, start: float | None = None,
+                     stop: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Linearly resample ``values`` [T, ...] given at ``time`` [T] onto a uniform grid at ``fps``.
+
+    Returns (new_time [T'], new_values [T', ...]).  The grid runs from ``start``
+    (default ``time[0]``) while it does not pass ``stop`` (default ``time[-1]``).
+    """
+    time = np.asarray(time, dtype=np.float64)
+    values = np.asarray(values)
+    start = time[0] if start is None else start
+    stop = time[-1] if stop is None else stop
+    count = int(np.floor((stop - start) * fps + 1e-9)) + 1
+    grid = start + np.arange(max(count, 0)) / fps
+    flat = values.reshape(len(time), -1)
+    out = np.stack([np.interp(grid, time, flat[:, k]) for k in range(flat.shape[1])], axis=1)
+    return grid, out.reshape((len(grid),) + values.shape[1:]).astype(values.dtype if values.dtype.kind == "f" else np.float64)

@@ -1,0 +1,124 @@
+"""Mesh files: a fast Wavefront OBJ reader and OBJ / PLY writers for posed frames.
+
+Faces are ``[F, k]`` vertex indices (0-based), ``k`` = 3 (triangles) or 4
+(quads); a mesh mixing the two is written as given and read as triangles.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from data.io import InputError, atomic_path
+
+
+@dataclass
+class ObjMesh:
+    """vertices [N,3]; faces [F,k] (0-based); uv_coords [M,2]; faces_uv [F,k] or None."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv_coords: np.ndarray | None = None
+    faces_uv: np.ndarray | None = None
+
+
+def _numbers(lines: list[bytes], count: int, path: Path, tag: str) -> np.ndarray:
+    """Parse lines ``<tag> a b c ...`` into ``[len(lines), count]`` floats (extra columns ignored)."""
+    if not lines:
+        return np.zeros((0, count))
+    rows = [line.split()[1:count + 1] for line in lines]
+    if any(len(r) != count for r in rows):
+        bad = next(i for i, r in enumerate(rows) if len(r) != count)
+        raise InputError(f"{path}: '{tag}' record {bad + 1} has {len(rows[bad])} numbers, expected {count}")
+    try:
+        return np.array(rows, dtype=np.float64)
+    except ValueError:
+        raise InputError(f"{path}: a '{tag}' record holds something that is not a number") from None
+
+
+def read_obj(path: str | os.PathLike, vertices_only: bool = False) -> ObjMesh:
+    """Read an OBJ: positions, faces (polygons kept if all have the same size), texture coordinates."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    lines = path.read_bytes().splitlines()
+    vertices = _numbers([ln for ln in lines if ln.startswith(b"v ")], 3, path, "v")
+    if len(vertices) == 0:
+        raise InputError(f"{path}: no vertices ('v x y z' lines); expected a Wavefront OBJ mesh")
+    if vertices_only:
+        return ObjMesh(vertices, np.zeros((0, 3), dtype=np.int64))
+    uv = _numbers([ln for ln in lines if ln.startswith(b"vt ")], 2, path, "vt")
+    face_lines = [ln.split()[1:] for ln in lines if ln.startswith(b"f ")]
+    sizes = {len(f) for f in face_lines}
+    if not face_lines:
+        raise InputError(f"{path}: no faces ('f' lines); expected a polygon mesh")
+    try:
+        corners = [[c.split(b"/") for c in f] for f in face_lines]
+        if len(sizes) == 1:
+            fv = np.array([[int(c[0]) for c in f] for f in corners])
+            has_uv = all(len(c) > 1 and c[1] for f in corners for c in f)
+            ft = np.array([[int(c[1]) for c in f] for f in corners]) if has_uv else None
+        else:  # mixed polygons: fan-triangulate
+            tri_v, tri_t = [], []
+            for f in corners:
+                for i in range(1, len(f) - 1):
+                    tri_v.append([int(f[0][0]), int(f[i][0]), int(f[i + 1][0])])
+                    if all(len(c) > 1 and c[1] for c in f):
+                        tri_t.append([int(f[0][1]), int(f[i][1]), int(f[i + 1][1])])
+            fv = np.array(tri_v)
+            ft = np.array(tri_t) if len(tri_t) == len(tri_v) else None
+    except ValueError:
+        raise InputError(f"{path}: an 'f' record holds a non-integer index") from None
+    fv = np.where(fv < 0, fv + len(vertices) + 1, fv) - 1  # OBJ indices are 1-based; negatives count back
+    if fv.min() < 0 or fv.max() >= len(vertices):
+        raise InputError(f"{path}: a face references vertex {fv.max() + 1}, but the file has {len(vertices)}")
+    if ft is not None:
+        ft = np.where(ft < 0, ft + len(uv) + 1, ft) - 1
+        if ft.min() < 0 or ft.max() >= len(uv):
+            raise InputError(f"{path}: a face references texture coordinate {ft.max() + 1}, the file has {len(uv)}")
+    return ObjMesh(vertices, fv, uv if len(uv) else None, ft)
+
+
+def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
+              uv_coords: np.ndarray | None = None, faces_uv: np.ndarray | None = None) -> None:
+    """Write one mesh (vertices [N,3], faces [F,k] 0-based, optional UVs) atomically."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
+    parts = ["".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in vertices)]
+    if uv_coords is not None and faces_uv is not None:
+        parts.append("".join(f"vt {u:.6f} {v:.6f}\n" for u, v in uv_coords))
+        pairs = np.stack([faces + 1, np.asarray(faces_uv) + 1], axis=-1)
+        parts.append("".join("f " + " ".join(f"{a}/{b}" for a, b in face) + "\n" for face in pairs))
+    else:
+        parts.append("".join("f " + " ".join(str(i) for i in face) + "\n" for face in faces + 1))
+    with atomic_path(path) as tmp:
+        tmp.write_text("".join(parts))
+
+
+def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write a binary little-endian PLY (float32 positions, int32 polygon indices) atomically."""
+    vertices = np.ascontiguousarray(vertices, dtype="<f4")
+    faces = np.asarray(faces, dtype="<i4")
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(vertices)}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    ).encode("ascii")
+    records = np.empty(len(faces), dtype=[("n", "u1"), ("idx", "<i4", (faces.shape[1],))])
+    records["n"] = faces.shape[1]
+    records["idx"] = faces
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(header)
+            f.write(vertices.tobytes())
+            f.write(records.tobytes())
+
+
+def triangulate(faces: np.ndarray) -> np.ndarray:
+    """[F,k] polygons -> [F*(k-2),3] triangles by fanning from the first corner."""
+    faces = np.asarray(faces)
+    if faces.shape[1] == 3:
+        return faces
+    return np.concatenate([faces[:, [0, i, i + 1]] for i in range(1, faces.shape[1] - 1)], axis=0)

@@ -1,0 +1,48 @@
+"""Checkpoints: one ``.pt`` file holding the model, what rebuilds it, and the training state.
+
+Layout of a checkpoint dict:
+``task`` (name), ``model_config`` (dict for the task's ``build_model``),
+``model`` (state dict), ``step``, and for resuming ``optimizer``,
+``scheduler``, ``config`` (the resolved run config).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from data.io import InputError, atomic_path
+
+
+def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
+    """Write atomically: a crash mid-save leaves the previous checkpoint intact."""
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: checkpoint not found")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # torch raises many types for a corrupt file
+        raise InputError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+    for key in ("task", "model_config", "model"):
+        if key not in state:
+            raise InputError(f"{path}: checkpoint has no '{key}' entry; expected one written by train.py")
+    return state
+
+
+def load_model(path: str | os.PathLike, task: str | None = None) -> tuple[nn.Module, dict]:
+    """Rebuild a trained model from a checkpoint; returns (model in eval mode, checkpoint dict)."""
+    from tasks import task_module
+
+    state = load_checkpoint(path)
+    if task is not None and state["task"] != task:
+        raise InputError(f"{path}: checkpoint of task '{state['task']}', expected '{task}'")
+    model = task_module(state["task"]).build_model(state["model_config"])
+    model.load_state_dict(state["model"])
+    return model.eval(), state

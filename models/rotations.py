@@ -1,0 +1,91 @@
+"""Rotation conversions: the project's one place for them (kornia underneath).
+
+Conventions owned here:
+- Axis-angle ("rotation vector") ``[..., 3]`` in radians, right-handed.
+- Quaternions ``[..., 4]`` as ``(w, x, y, z)``.
+- 6D representation ``[..., 6]``: the first two *columns* of the rotation
+  matrix, concatenated (Zhou et al., "On the Continuity of Rotation
+  Representations in Neural Networks", CVPR 2019).
+- Euler angles ``[..., 3]`` as ``(ax, ay, az)`` about x, y and z of the frame
+  the rotation acts in, composed ``R = Rz(az) @ Ry(ay) @ Rx(ax)``.  In a
+  cervical bone frame (x lateral to the subject's left, y along the bone, z
+  forward) ``ax`` is flexion (+) / extension (-), ``ay`` axial rotation
+  (+ = towards the subject's left) and ``az`` lateral bending (+ = towards the
+  subject's right); ``ay`` stays far from the +-90 degree singularity in any
+  physiological pose.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from kornia.geometry import conversions as kc
+
+
+def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
+    """[..., 3] radians -> [..., 3, 3]."""
+    shape = axis_angle.shape[:-1]
+    return kc.axis_angle_to_rotation_matrix(axis_angle.reshape(-1, 3)).reshape(*shape, 3, 3)
+
+
+def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] -> [..., 3] radians, angle in [0, pi]."""
+    shape = matrix.shape[:-2]
+    return kc.rotation_matrix_to_axis_angle(matrix.reshape(-1, 3, 3)).reshape(*shape, 3)
+
+
+def matrix_to_quaternion(matrix: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] -> [..., 4] (w, x, y, z) with w >= 0."""
+    shape = matrix.shape[:-2]
+    q = kc.rotation_matrix_to_quaternion(matrix.reshape(-1, 3, 3))
+    q = torch.where(q[:, :1] < 0, -q, q)
+    return q.reshape(*shape, 4)
+
+
+def quaternion_to_matrix(quaternion: torch.Tensor) -> torch.Tensor:
+    """[..., 4] (w, x, y, z), normalised here -> [..., 3, 3]."""
+    shape = quaternion.shape[:-1]
+    q = F.normalize(quaternion.reshape(-1, 4), dim=-1)
+    return kc.quaternion_to_rotation_matrix(q).reshape(*shape, 3, 3)
+
+
+def matrix_to_rot6d(matrix: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] -> [..., 6]: first two columns."""
+    return torch.cat([matrix[..., :, 0], matrix[..., :, 1]], dim=-1)
+
+
+def rot6d_to_matrix(rot6d: torch.Tensor) -> torch.Tensor:
+    """[..., 6] -> [..., 3, 3] by Gram-Schmidt on the two columns."""
+    a, b = rot6d[..., :3], rot6d[..., 3:]
+    x = F.normalize(a, dim=-1)
+    y = F.normalize(b - (x * b).sum(-1, keepdim=True) * x, dim=-1)
+    z = torch.cross(x, y, dim=-1)
+    return torch.stack([x, y, z], dim=-1)
+
+
+def matrix_to_euler(matrix: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] -> [..., 3] (ax, ay, az) with ``R = Rz(az) Ry(ay) Rx(ax)``."""
+    q = matrix_to_quaternion(matrix)
+    roll, pitch, yaw = kc.euler_from_quaternion(q[..., 0], q[..., 1], q[..., 2], q[..., 3])
+    return torch.stack([roll, pitch, yaw], dim=-1)
+
+
+def euler_to_matrix(euler: torch.Tensor) -> torch.Tensor:
+    """[..., 3] (ax, ay, az) -> [..., 3, 3] ``Rz(az) Ry(ay) Rx(ax)``."""
+    w, x, y, z = kc.quaternion_from_euler(euler[..., 0], euler[..., 1], euler[..., 2])
+    return quaternion_to_matrix(torch.stack([w, x, y, z], dim=-1))
+
+
+def axis_angle_to_euler(axis_angle: torch.Tensor) -> torch.Tensor:
+    return matrix_to_euler(axis_angle_to_matrix(axis_angle))
+
+
+def euler_to_axis_angle(euler: torch.Tensor) -> torch.Tensor:
+    return matrix_to_axis_angle(euler_to_matrix(euler))
+
+
+def relative_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle in radians between rotation matrices [..., 3, 3] (stable near 0 and pi)."""
+    r = a.transpose(-1, -2) @ b
+    skew = torch.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
+    trace = r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2]
+    return torch.atan2(0.5 * skew.norm(dim=-1), 0.5 * (trace - 1.0))

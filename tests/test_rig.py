@@ -1,0 +1,184 @@
+"""The head-and-neck model on the built-in procedural rig: conventions, kinematics, gradients, errors."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from data.expressions import EXPRESSION_NAMES
+from models.rig import HeadNeckModel
+
+
+def random_inputs(model: HeadNeckModel, batch: int, seed: int = 0, scale: float = 0.3):
+    g = torch.Generator().manual_seed(seed)
+    theta = (torch.rand(batch, model.num_joints, 3, generator=g) - 0.5) * scale
+    psi = torch.rand(batch, model.num_expressions, generator=g)
+    tau = (torch.rand(batch, generator=g) - 0.5) * 0.1
+    eta = torch.rand(batch, generator=g) * 1.5
+    beta = torch.randn(batch, model.num_shapes, generator=g)
+    return theta, psi, tau, eta, beta
+
+
+def larynx_height(model: HeadNeckModel, tau: float) -> float:
+    """Height (cm) of the displacement-weighted centroid of the larynx term."""
+    offsets = model.larynx_offsets(torch.tensor([tau]), torch.ones(1))[0].norm(dim=1)
+    return float((offsets * model.template[:, 1]).sum() / offsets.sum())
+
+
+def test_builtin_is_a_few_thousand_vertices_with_the_hack_interface(builtin_rig):
+    assert 2000 < builtin_rig.num_vertices < 10000
+    assert builtin_rig.joint_names == ["c7t1", "c6c7", "c5c6", "c4c5", "c3c4", "c2c3", "c1c2", "oc1"]
+    assert builtin_rig.parents == [-1, 0, 1, 2, 3, 4, 5, 6]
+    assert builtin_rig.expression_names == list(EXPRESSION_NAMES)
+    assert builtin_rig.faces.shape[1] == 3 and int(builtin_rig.faces.max()) == builtin_rig.num_vertices - 1
+
+
+def test_rest_pose_gives_the_template(builtin_rig):
+    theta = builtin_rig.neutral(2)
+    without_larynx = builtin_rig(theta, eta=torch.zeros(2))
+    assert torch.allclose(without_larynx, builtin_rig.template.expand(2, -1, -1), atol=1e-5)
+    with_larynx = builtin_rig(theta)
+    expected = builtin_rig.template + builtin_rig.larynx_offsets(torch.zeros(1), torch.ones(1))[0]
+    assert torch.allclose(with_larynx[0], expected, atol=1e-5)
+    assert float((with_larynx[0] - builtin_rig.template).norm(dim=1).max()) > 0.5  # the larynx protrudes
+
+
+def test_larynx_moves_monotonically_up_the_neck_with_tau(builtin_rig):
+    taus = np.linspace(-0.06, 0.10, 17)
+    heights = np.array([larynx_height(builtin_rig, t) for t in taus])
+    assert (np.diff(heights) > 0).all()
+    # About 34 cm of neck per UV unit on this rig: tau 0.03 slides the larynx ~1 cm.
+    slope = np.polyfit(taus, heights, 1)[0]
+    assert 25 < slope < 45
+
+
+def test_batch_matches_single_frames(builtin_rig):
+    theta, psi, tau, eta, beta = random_inputs(builtin_rig, 5)
+    batched = builtin_rig(theta, psi, tau, eta, beta)
+    for i in range(5):
+        single = builtin_rig(theta[i:i + 1], psi[i:i + 1], tau[i:i + 1], eta[i:i + 1], beta[i:i + 1])
+        assert torch.allclose(batched[i], single[0], atol=1e-5)
+
+
+def test_joint_transforms_keep_bone_lengths_and_start_at_rest(builtin_rig):
+    theta, *_ = random_inputs(builtin_rig, 6, scale=1.0)
+    world = builtin_rig.joint_transforms(theta)
+    assert world.shape == (6, 8, 4, 4)
+    rest = builtin_rig.joint_transforms(builtin_rig.neutral(1))[0]
+    assert torch.allclose(rest, builtin_rig.rest_world, atol=1e-6)
+    lengths = (world[:, 1:, :3, 3] - world[:, :-1, :3, 3]).norm(dim=-1)
+    rest_lengths = (rest[1:, :3, 3] - rest[:-1, :3, 3]).norm(dim=-1)
+    assert torch.allclose(lengths, rest_lengths.expand_as(lengths), atol=1e-5)
+    rotations = world[..., :3, :3]
+    assert torch.allclose(rotations @ rotations.transpose(-1, -2), torch.eye(3).expand_as(rotations), atol=1e-5)
+
+
+def test_head_rotation_is_the_chain_product(builtin_rig):
+    """Independent check with scipy: head = prod_j (rest_j @ R_j), relative to rest."""
+    theta, *_ = random_inputs(builtin_rig, 4, seed=3, scale=0.6)
+    head = builtin_rig.head_rotation(theta).double().numpy()
+    local = builtin_rig.rest_local[:, :3, :3].double().numpy()
+    for b in range(4):
+        posed = np.eye(3)
+        rest = np.eye(3)
+        for j in range(8):
+            posed = posed @ local[j] @ Rotation.from_rotvec(theta[b, j].double().numpy()).as_matrix()
+            rest = rest @ local[j]
+        np.testing.assert_allclose(head[b], posed @ rest.T, atol=1e-5)
+    assert torch.allclose(builtin_rig.head_rotation(builtin_rig.neutral(2)), torch.eye(3).expand(2, 3, 3), atol=1e-6)
+
+
+def test_positive_x_rotation_is_flexion_nose_goes_down(builtin_rig):
+    nose = int(torch.argmax(builtin_rig.template[:, 2]))
+    theta = builtin_rig.neutral(1)
+    theta[0, :, 0] = 0.05  # flexion at every level
+    moved = builtin_rig(theta, eta=torch.zeros(1))[0, nose] - builtin_rig.template[nose]
+    assert moved[1] < -1.0  # the face goes down towards the chest
+    theta = builtin_rig.neutral(1)
+    theta[0, :, 1] = 0.1  # axial rotation towards the subject's left (+x)
+    moved = builtin_rig(theta, eta=torch.zeros(1))[0, nose] - builtin_rig.template[nose]
+    assert moved[0] > 1.0
+
+
+def test_gradients_reach_every_input(builtin_rig):
+    theta, psi, tau, eta, beta = random_inputs(builtin_rig, 3, seed=1)
+    weights = torch.tensor([[0.6, 0.3, 0.1]]).repeat(3, 1)
+    inputs = [t.clone().requires_grad_(True) for t in (theta, psi, tau, eta, beta, weights)]
+    out = builtin_rig(*inputs[:5], larynx_weights=inputs[5])
+    probe = torch.randn(out.shape, generator=torch.Generator().manual_seed(2))
+    (out * probe).sum().backward()
+    for name, t in zip(("theta", "psi", "tau", "eta", "beta", "larynx_weights"), inputs):
+        assert t.grad is not None and torch.isfinite(t.grad).all(), name
+        assert t.grad.abs().sum() > 0, name
+
+
+def test_tau_gradient_matches_finite_differences(builtin_rig):
+    theta, psi, _, _, _ = random_inputs(builtin_rig, 1, seed=4)
+    probe = torch.randn(1, builtin_rig.num_vertices, 3, generator=torch.Generator().manual_seed(5))
+    tau = torch.tensor([0.0123], requires_grad=True)
+    (builtin_rig(theta, psi, tau) * probe).sum().backward()
+    h = 1e-4  # well inside one texel (1/255) so the bilinear map is linear over the step
+    with torch.no_grad():
+        difference = builtin_rig(theta, psi, tau.detach() + h) - builtin_rig(theta, psi, tau.detach() - h)
+    numeric = float((difference * probe).sum()) / (2 * h)
+    assert abs(float(tau.grad) - numeric) < 0.05 * abs(numeric)
+
+
+def test_larynx_map_stack_is_weighted_by_identity(builtin_rig):
+    tau = torch.tensor([0.01, 0.01])
+    eta = torch.ones(2)
+    mixed = builtin_rig.larynx_offsets(tau, eta, torch.tensor([[0.0, 1.0, 0.0], [0.5, 0.0, 0.5]]))
+    single = [builtin_rig.larynx_offsets(tau[:1], eta[:1], torch.eye(3)[k:k + 1])[0] for k in range(3)]
+    assert torch.allclose(mixed[0], single[1], atol=1e-6)
+    assert torch.allclose(mixed[1], 0.5 * single[0] + 0.5 * single[2], atol=1e-6)
+    assert not torch.allclose(single[0], single[1], atol=1e-3)
+
+
+def test_pose_correctives_use_rotation_minus_identity_without_the_root(builtin_rig):
+    rig = builtin_rig.rig
+    n = rig.template.shape[0]
+    basis = np.random.default_rng(0).normal(0, 0.01, (8 * 9, n * 3)).astype(np.float32)
+    model = HeadNeckModel(dataclasses.replace(rig, pose_correctives=basis))
+    theta = builtin_rig.neutral(1)
+    theta[0, 0] = torch.tensor([0.3, 0.1, 0.0])  # the root's rotation has no corrective
+    assert torch.allclose(model(theta), builtin_rig(theta), atol=1e-5)
+    theta[0, 4] = torch.tensor([0.0, 0.2, 0.1])
+    rotation = torch.tensor(Rotation.from_rotvec([0.0, 0.2, 0.1]).as_matrix(), dtype=torch.float32)
+    features = torch.zeros(8, 9)
+    features[4] = (rotation - torch.eye(3)).reshape(-1)
+    expected_rest = model.template + (features.reshape(1, -1) @ torch.tensor(basis)).reshape(-1, 3)
+    rest = model.rest_shape(rotations=model.rotations(theta), eta=torch.zeros(1))[0]
+    assert torch.allclose(rest, expected_rest, atol=1e-5)
+
+
+def test_expressions_are_plausible(builtin_rig):
+    deltas = builtin_rig.expression_deltas
+    names = builtin_rig.expression_names
+    template = builtin_rig.template
+    chin_band = (template[:, 1] > -4.5) & (template[:, 1] < -2.5)
+    chin = int(torch.argmax(torch.where(chin_band, template[:, 2], torch.tensor(-1e9))))
+    assert deltas[names.index("jawOpen"), chin, 1] < -1.0
+    blink_left = deltas[names.index("eyeBlink_L")]
+    moved = blink_left.norm(dim=1) > 0.05
+    assert (builtin_rig.template[moved, 0] > 0).all()  # the subject's left is +x
+    assert blink_left[:, 1].min() < -0.5
+    # _R shapes mirror _L shapes across x = 0.
+    left, right = deltas[names.index("mouthSmile_L")], deltas[names.index("mouthSmile_R")]
+    mirror = torch.tensor([-1.0, 1.0, 1.0])
+    assert torch.allclose(left.sum(0) * mirror, right.sum(0), rtol=0.05, atol=0.05)
+    assert (deltas.reshape(55, -1).abs().max(dim=1).values > 0.1).all()  # every shape does something
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(theta=torch.zeros(2, 7, 3)), r"theta has shape \[2, 7, 3\], expected \[B,8,3\]"),
+    (dict(psi=torch.zeros(2, 52)), r"psi has shape \[2, 52\], expected \[2,55\]"),
+    (dict(tau=torch.zeros(3)), r"tau has shape \[3\], expected \[2\]"),
+])
+def test_wrong_input_shapes_are_named(builtin_rig, bad, message):
+    kwargs = dict(theta=torch.zeros(2, 8, 3))
+    kwargs.update(bad)
+    with pytest.raises(ValueError, match=message):
+        builtin_rig(**kwargs)
