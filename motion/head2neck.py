@@ -1,0 +1,175 @@
+"""Drive HACK's cervical spine from head orientations: ``python -m motion.head2neck``.
+
+    python -m motion.head2neck checkpoint=runs/head2neck/<run>/checkpoints/last.pt input=rotations.npy out=theta.npy
+    python -m motion.head2neck checkpoint=... input=ypr.npy input_format=ypr units=deg out=theta.npy
+    python -m motion.head2neck checkpoint=... input=take.csv out=theta.npy        # Live Link Face / ARKit CSV
+
+Output: theta ``[T,8,3]`` float32 (axis-angle radians per joint in its bone frame, ``models.rig``),
+one row per input frame (a CSV keeps its own frames and rate; the rate is printed), written atomically.
+The model's output is made exact by the correction step (``models.head2neck.predict_theta``); the
+remaining head orientation error and any joints outside the limits are printed.
+
+Inputs (``input_format=auto`` picks by suffix and shape):
+- ``matrix``: ``.npy`` ``[T,3,3]`` head orientations in the rig's world frame (y up, face towards +z,
+  x to the subject's left), relative to the rest pose: ``HeadNeckModel.head_rotation``'s definition.
+- ``ypr``: ``.npy`` ``[T,3]`` yaw, pitch, roll in ``units`` (rad | deg | halfturn, 1 halfturn = 180 deg).
+- ``csv``: an expression capture read by ``data.expressions.read_expressions`` with ``HeadYaw,
+  HeadPitch, HeadRoll`` columns (its ``head_ypr``).
+
+Yaw/pitch/roll convention (owned here), in the rig's world frame::
+
+    R = Ry(yaw) @ Rx(pitch) @ Rz(roll)        (intrinsic: yaw, then pitch, then roll)
+
+- yaw about +y (up): + turns the face towards the subject's left;
+- pitch about +x (the subject's left): + is flexion, the face looks down;
+- roll about +z (forward): + tilts the head towards the subject's right shoulder.
+Each sign is the rig's joint convention (``models.rotations``) applied to the whole head.
+
+ARKit / Live Link Face ``HeadYaw, HeadPitch, HeadRoll``: ARKit's face anchor frame is x towards the
+face's own left, y up, z out of the face (Apple, ``ARFaceAnchor`` documentation), the rig's frame, so
+a face anchor rotation relative to a neutral, camera-facing pose is directly a ``matrix`` input.
+Unreal's ARKit face support (``AppleARKitFaceSupport``, ``ToBlendShapeMap``) converts that rotation to
+Unreal's left-handed frame (``FAppleARKitConversion::ToFTransform``), takes its ``FRotator`` and, when
+the face is not mirrored, negates yaw and roll.  Working that through, a head turn to the subject's
+left gives ``HeadYaw > 0``, looking down ``HeadPitch > 0`` and a tilt to the right shoulder
+``HeadRoll > 0``, and ``FRotator``'s yaw-pitch-roll order is the order above: the mapping is the
+identity, ``(yaw, pitch, roll) = (HeadYaw, HeadPitch, HeadRoll)``.  Uncertain, hence the options:
+- signs: a mirrored face (Unreal's ``FaceMirrored``) flips yaw and roll, and users report HeadPitch and
+  HeadYaw inverted with the phone in landscape; ``yaw_sign``, ``pitch_sign``, ``roll_sign`` (+-1)
+  flip them.  Check with a recording of a known turn, nod and tilt;
+- units: Unreal's live stream divides degrees by 180 (``units=halfturn``); the Live Link Face CSVs we
+  have (../shared/samples) hold radians: their eye yaw spans +-0.6, physiological only in radians
+  (+-35 deg), and ``data.expressions`` reads head angles as radians.  Default ``units=rad``;
+- neutral: the angles are relative to the phone, so a subject not facing the camera squarely has an
+  offset; ``recenter=true`` makes the first frame the rest pose.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from data.expressions import read_expressions
+from data.io import InputError, load_npy, save_npy
+from models.checkpoint import load_model
+from models.head2neck import head_error_deg, predict_theta
+from models.joint_limits import within_limits
+from models.rig import HeadNeckModel
+from models.rotations import axis_angle_to_matrix
+
+INPUT_FORMATS = ("auto", "matrix", "ypr", "csv")
+UNITS = {"rad": 1.0, "deg": np.pi / 180.0, "halfturn": np.pi}
+
+
+def ypr_to_matrix(ypr: torch.Tensor) -> torch.Tensor:
+    """Yaw, pitch, roll [...,3] radians -> head orientations [...,3,3], ``Ry(yaw) Rx(pitch) Rz(roll)``."""
+    zero = torch.zeros_like(ypr[..., 0])
+    yaw = axis_angle_to_matrix(torch.stack([zero, ypr[..., 0], zero], -1))
+    pitch = axis_angle_to_matrix(torch.stack([ypr[..., 1], zero, zero], -1))
+    roll = axis_angle_to_matrix(torch.stack([zero, zero, ypr[..., 2]], -1))
+    return yaw @ pitch @ roll
+
+
+def check_rotations(matrices: np.ndarray, path: Path, tolerance: float = 1e-3) -> None:
+    """InputError naming the first frame that is not a rotation matrix."""
+    gram = np.einsum("tki,tkj->tij", matrices, matrices) - np.eye(3)
+    bad = (np.abs(gram).max((1, 2)) > tolerance) | (np.linalg.det(matrices) < 0)
+    if bad.any():
+        frame = int(np.argmax(bad))
+        raise InputError(f"{path}: frame {frame} is not a rotation matrix (R^T R - I up to "
+                         f"{np.abs(gram[frame]).max():.3g}, det {np.linalg.det(matrices[frame]):.3g}); "
+                         f"expected head orientations [T,3,3]")
+
+
+def read_head_rotations(path: str | Path, input_format: str = "auto", units: str = "rad",
+                        signs: tuple[float, float, float] = (1.0, 1.0, 1.0), fps: float | None = None
+                        ) -> tuple[torch.Tensor, str]:
+    """Head orientations [T,3,3] (float32) from a file, and a description of what was read."""
+    path = Path(path)
+    if input_format not in INPUT_FORMATS:
+        raise InputError(f"input_format={input_format}: expected one of {', '.join(INPUT_FORMATS)}")
+    if units not in UNITS:
+        raise InputError(f"units={units}: expected one of {', '.join(UNITS)}")
+    if input_format == "auto":
+        if path.suffix.lower() == ".csv":
+            input_format = "csv"
+        elif path.suffix.lower() == ".npy":
+            array = load_npy(path, (2, 3), "head orientations [T,3,3] or yaw/pitch/roll [T,3]")
+            input_format = "matrix" if array.ndim == 3 else "ypr"
+        else:
+            raise InputError(f"{path}: unsupported input '{path.suffix}', expected .npy ([T,3,3] or [T,3]) or .csv")
+    if input_format == "matrix":
+        matrices = load_npy(path, 3, "head orientations [T,3,3]")
+        if matrices.shape[1:] != (3, 3):
+            raise InputError(f"{path}: array of shape {matrices.shape}, expected head orientations [T,3,3]")
+        check_rotations(matrices, path)
+        return torch.tensor(matrices, dtype=torch.float32), f"{len(matrices)} head orientations"
+    if input_format == "ypr":
+        ypr = load_npy(path, 2, f"yaw, pitch, roll [T,3] in {units}")
+        if ypr.shape[1] != 3:
+            raise InputError(f"{path}: array of shape {ypr.shape}, expected yaw, pitch, roll [T,3] in {units}")
+        description = f"{len(ypr)} yaw/pitch/roll frames"
+    else:
+        track = read_expressions(path, fps=fps)
+        if track.head_ypr is None:
+            raise InputError(f"{path}: no head rotation recorded (HeadYaw, HeadPitch, HeadRoll missing or all "
+                             f"zero); expected a capture with head rotation")
+        ypr = track.head_ypr
+        description = f"{len(ypr)} frames of HeadYaw/HeadPitch/HeadRoll at {track.fps:g} fps"
+    radians = np.asarray(ypr, dtype=np.float64) * UNITS[units] * np.asarray(signs, dtype=np.float64)
+    if np.abs(radians).max() > np.pi + 1e-6:
+        raise InputError(f"{path}: angles up to {np.abs(radians).max():.3g} rad after units={units}; "
+                         f"expected at most pi (wrong units?)")
+    return ypr_to_matrix(torch.tensor(radians, dtype=torch.float32)), description
+
+
+def recentered(head: torch.Tensor) -> torch.Tensor:
+    """Orientations relative to the first frame: H_t H_0^T."""
+    return head @ head[0].T
+
+
+def run(cfg: DictConfig) -> np.ndarray:
+    """The CLI's work: returns theta [T,J,3] and writes it to ``cfg.out``."""
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    for key in ("checkpoint", "input", "out"):
+        if cfg.get(key) in (None, "", "???"):
+            raise InputError(f"missing {key}=...; usage: python -m motion.head2neck checkpoint=last.pt "
+                             f"input=rotations.npy out=theta.npy")
+    model, state = load_model(cfg.checkpoint, task="head2neck")
+    rig_path = cfg.rig if cfg.rig is not None else state.get("config", {}).get("rig")
+    rig = HeadNeckModel.from_config(rig_path)
+    signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
+    head, description = read_head_rotations(cfg.input, cfg.input_format, cfg.units, signs, cfg.fps)
+    if cfg.recenter:
+        head = recentered(head)
+    theta = predict_theta(model, rig, head, int(cfg.iterations))
+    error = head_error_deg(theta, head, rig)
+    outside = ~within_limits(theta)
+    save_npy(cfg.out, theta.numpy().astype(np.float32))
+    print(f"{cfg.input}: {description} -> {cfg.out} theta {list(theta.shape)}")
+    print(f"head orientation residual: max {float(error.max()):.4f} deg, mean {float(error.mean()):.5f} deg")
+    if outside.any():
+        frames = torch.nonzero(outside.any(-1)).reshape(-1)
+        print(f"joints outside the limits: {int(outside.sum())} in {len(frames)} frames (first: frame "
+              f"{int(frames[0])})")
+    else:
+        print("joints outside the limits: none")
+    return theta.numpy()
+
+
+@hydra.main(version_base=None, config_path="../configs", config_name="head2neck")
+def main(cfg: DictConfig) -> None:
+    try:
+        run(cfg)
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,160 @@
+"""Training task: head orientation -> the 8 cervical joint rotations (``python train.py task=head2neck``).
+
+Data (``cfg.data.kind``):
+- ``synthetic`` (default): sequences of the anatomical prior (``data.cervical_prior``), one person
+  each; validation sequences come from another seed, so from new persons.
+- ``theta_seq``: real theta sequences (``data.path``: a ``.npy`` ``[T,8,3]`` or a folder of them, at
+  ``data.fps``); several files are split by file (``val_fraction`` of them, chosen with ``seed``), a
+  single file by time (its last ``val_fraction`` of frames).
+Head orientations are the rig's forward kinematics of the poses (``cfg.rig``, built-in by default).
+
+Loss per batch of frames (``configs/task/head2neck.yaml``)::
+
+    mean_j |R_j - R_j*|^2 / 2  +  lambda_fk |H(theta) - H*|^2 / 2  +  lambda_rot E_rot  +  lambda_sim E_sim
+
+(``|R - R*|^2 / 2 = 2 (1 - cos angle)``, about angle^2 in radians^2; E_rot and E_sim from
+``models.joint_limits``).  Evaluation: per-joint angular error (degrees) of the model after the exact
+correction, of the model's raw output, and of the two analytic baselines after the same correction
+(the ROM split does not reproduce the head by itself; the uniform split does, but puts ~10% of the
+joints outside their limits, which the correction clamps and redistributes), the head orientation
+error and the share of joints inside the limits.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from data.cervical_prior import PriorConfig, head_rotations, load_theta_sequences, sample_sequences
+from data.io import InputError
+from models.head2neck import (build_model, correct_to_head, head_error_deg, rest_rotations,
+                              split_head_rotation)
+from models.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
+from models.rig import HeadNeckModel
+from models.rotations import axis_angle_to_matrix, relative_angle
+
+__all__ = ["Task", "build_model"]
+
+
+def prior_config(data: DictConfig) -> PriorConfig:
+    """The generator settings among ``cfg.data`` (the fields of PriorConfig)."""
+    fields = PriorConfig.__dataclass_fields__
+    values = {k: v for k, v in OmegaConf.to_container(data, resolve=True).items() if k in fields}
+    if "kind_weights" in values:
+        values["kind_weights"] = tuple(values["kind_weights"])
+    return PriorConfig(**values)
+
+
+def split_sequences(sequences: list[np.ndarray], val_fraction: float, seed: int, path: str
+                    ) -> tuple[list[np.ndarray], list[np.ndarray], str]:
+    """(train, val, description): by file when there are several, else by time."""
+    if not 0 < val_fraction < 1:
+        raise InputError(f"{path}: val_fraction must be in (0, 1), got {val_fraction}")
+    if len(sequences) == 1:
+        theta = sequences[0]
+        cut = int(round(len(theta) * (1 - val_fraction)))
+        if cut < 1 or cut >= len(theta):
+            raise InputError(f"{path}: {len(theta)} frames are too few to hold out {val_fraction:.0%} of them")
+        return [theta[:cut]], [theta[cut:]], f"the last {len(theta) - cut} frames of {path}"
+    order = np.random.default_rng(seed).permutation(len(sequences))
+    count = min(len(sequences) - 1, max(1, math.ceil(val_fraction * len(sequences))))
+    val = [sequences[i] for i in order[:count]]
+    train = [sequences[i] for i in order[count:]]
+    return train, val, f"{count} of the {len(sequences)} sequences in {path}"
+
+
+class Task:
+    def __init__(self, cfg: DictConfig):
+        self.cfg = cfg
+        self.rig = HeadNeckModel.from_config(cfg.rig)
+        self.rig.requires_grad_(False)
+        self._model_config = {**OmegaConf.to_container(cfg.model, resolve=True),
+                              "rest_rotations": rest_rotations(self.rig).tolist()}
+        self.model = build_model(self._model_config)
+        train, val, self.val_description = self._sequences(cfg.data)
+        self.train = self._frames(np.concatenate(train))
+        self.val = self._frames(np.concatenate(val))
+
+    # ------------------------------------------------------------------ data
+
+    def _sequences(self, data: DictConfig) -> tuple[list[np.ndarray], list[np.ndarray], str]:
+        if data.kind == "synthetic":
+            config = prior_config(data)
+            train = sample_sequences(int(data.train_sequences), int(data.seed), config)
+            val = sample_sequences(int(data.val_sequences), int(data.val_seed), config)
+            description = (f"{data.val_sequences} synthetic sequences of new persons (seed {data.val_seed}, "
+                           f"{config.seconds:g} s at {config.fps:g} fps)")
+            return [train.theta.reshape(-1, *train.theta.shape[2:])], \
+                [val.theta.reshape(-1, *val.theta.shape[2:])], description
+        if data.kind == "theta_seq":
+            sequences = [s.theta for s in load_theta_sequences(data.path, float(data.fps), self.rig.num_joints)]
+            return split_sequences(sequences, float(data.val_fraction), int(self.cfg.seed), str(data.path))
+        raise ValueError(f"task head2neck: unknown data kind '{data.kind}', expected synthetic or theta_seq")
+
+    def _frames(self, theta: np.ndarray) -> dict[str, torch.Tensor]:
+        theta = torch.as_tensor(theta, dtype=torch.float32)
+        return {"theta": theta, "rotations": axis_angle_to_matrix(theta), "head": head_rotations(self.rig, theta)}
+
+    def batch(self, step: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        index = torch.randint(len(self.train["theta"]), (int(self.cfg.task.batch_size),), generator=generator)
+        return {name: value[index] for name, value in self.train.items()}
+
+    # ------------------------------------------------------------------ loss
+
+    def loss(self, batch: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        task = self.cfg.task
+        theta = self.model(batch["head"])
+        joint = 0.5 * ((axis_angle_to_matrix(theta) - batch["rotations"]) ** 2).sum((-1, -2)).mean()
+        consistency = 0.5 * ((self.rig.head_rotation(theta) - batch["head"]) ** 2).sum((-1, -2)).mean()
+        e_rot = rotation_limit_energy(theta).mean()
+        e_sim = adjacent_similarity_energy(theta, self.rig.parents).mean()
+        loss = joint + task.lambda_fk * consistency + task.lambda_rot * e_rot + task.lambda_sim * e_sim
+        joint, consistency, e_rot, e_sim = (float(x.detach()) for x in (joint, consistency, e_rot, e_sim))
+        return loss, {"loss": float(loss.detach()), "joint_rms_deg": math.degrees(math.sqrt(joint)),
+                      "head_rms_deg": math.degrees(math.sqrt(consistency)), "e_rot": e_rot, "e_sim": e_sim}
+
+    # ------------------------------------------------------------------ evaluation
+
+    @torch.no_grad()
+    def evaluate(self, final: bool = False) -> dict[str, float]:
+        head, truth = self.val["head"], self.val["rotations"]
+        iterations = int(self.cfg.task.correction_iterations)
+        rest = self.model.rest
+        raw = torch.cat([self.model(h) for h in head.split(8192)])
+        methods = {
+            "model": correct_to_head(raw, head, self.rig, iterations),
+            "model_raw": raw,
+            "uniform": correct_to_head(split_head_rotation(head, rest, "uniform"), head, self.rig, iterations),
+            "rom": correct_to_head(split_head_rotation(head, rest, "rom"), head, self.rig, iterations),
+        }
+        rows = {}
+        for name, theta in methods.items():
+            per_joint = torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), truth)).mean(0)
+            head_error = head_error_deg(theta, head, self.rig)
+            rows[name] = (per_joint, float(head_error.max()), float(within_limits(theta).float().mean()))
+        per_joint, head_max, inside = rows["model"]
+        metrics = {"joint_err_deg": float(per_joint.mean()), "head_err_max_deg": head_max, "within_limits": inside}
+        metrics.update({f"joint_err_deg_{n}": float(e) for n, e in zip(self.rig.joint_names, per_joint)})
+        for name in ("model_raw", "uniform", "rom"):
+            per_joint, head_max, inside = rows[name]
+            metrics.update({f"{name}_joint_err_deg": float(per_joint.mean()), f"{name}_head_err_max_deg": head_max,
+                            f"{name}_within_limits": inside})
+        if final:
+            self._print_table(rows, len(head))
+        return metrics
+
+    def _print_table(self, rows: dict, frames: int) -> None:
+        labels = {"model": "MLP + correction", "model_raw": "MLP (raw output)",
+                  "uniform": "uniform split + correction", "rom": "ROM split + correction"}
+        names = self.rig.joint_names
+        print(f"\nhead2neck: per-joint angular error (deg) on {frames} held-out frames ({self.val_description})")
+        print(f"{'method':27s}{'mean':>7s}" + "".join(f"{n:>7s}" for n in names) + f"{'head max':>10s}{'in limits':>11s}")
+        for key, label in labels.items():
+            per_joint, head_max, inside = rows[key]
+            print(f"{label:27s}{float(per_joint.mean()):7.2f}" + "".join(f"{float(e):7.2f}" for e in per_joint)
+                  + f"{head_max:10.1e}{inside:11.4f}")
+
+    def model_config(self) -> dict:
+        return self._model_config

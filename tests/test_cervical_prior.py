@@ -1,0 +1,135 @@
+"""Anatomical prior of cervical motion (data/cervical_prior.py): statistics, limits, smoothness, loader."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from data.cervical_prior import (C1C2, MOTION_KINDS, OC1, PriorConfig, head_rotations, load_theta_sequences,
+                                 sample_persons, sample_sequences, segmental_euler)
+from data.io import InputError, save_npy
+from models.joint_limits import RANGES_DEG, within_limits
+
+# Published one-side ranges (White & Panjabi 1990, as in models/joint_limits.py), root to head:
+# C7-T1, C6-C7, C5-C6, C4-C5, C3-C4, C2-C3, C1-C2, O-C1.
+AXIAL_ONE_SIDE = np.array([2, 6, 7, 7, 7, 3, 40, 5], float)
+SAGITTAL_TOTAL = np.array([9, 17, 20, 20, 15, 10, 22.4, 24.5])
+
+
+@pytest.fixture(scope="module")
+def sequences():
+    return sample_sequences(400, seed=11)
+
+
+def of_kind(sequences, kind):
+    return np.degrees(sequences.euler[np.array(sequences.kinds) == kind])
+
+
+def test_c1c2_carries_about_half_of_large_turns_and_more_of_small_ones(sequences):
+    turns = of_kind(sequences, "turn")
+    drive = sequences.drives[np.array(sequences.kinds) == "turn"][..., 1]
+    axial = turns[..., 1]
+    share = axial[..., C1C2] / axial.sum(-1)
+    published = AXIAL_ONE_SIDE[C1C2] / AXIAL_ONE_SIDE.sum()  # 0.52
+    large = np.median(share[np.abs(drive) > 0.9])
+    small = np.median(share[(np.abs(drive) > 0.05) & (np.abs(drive) < 0.3)])
+    assert abs(large - published) < 0.08
+    assert small > large + 0.1  # C1-C2 moves first (Ishii et al. 2004)
+
+
+def test_flexion_is_led_by_oc1_and_the_mid_cervical_levels(sequences):
+    persons = sample_persons(300, np.random.default_rng(5))
+    drives = np.zeros((300, 2, 3))
+    drives[:, 0, 0], drives[:, 1, 0] = 1.0, -1.0         # full flexion, full extension, nothing else
+    euler = np.degrees(segmental_euler(drives, persons))
+    sagittal = (euler[:, 0, :, 0] - euler[:, 1, :, 0]).mean(0)
+    # at full drive the split is the published sagittal split
+    assert np.abs(sagittal / sagittal.sum() - SAGITTAL_TOTAL / SAGITTAL_TOTAL.sum()).max() < 0.03
+    order = list(np.argsort(sagittal)[::-1])
+    assert order[0] == OC1 and set(order[2:4]) == {2, 3}  # then C1-C2, then C5-C6 and C4-C5
+    nods = np.abs(of_kind(sequences, "nod")[..., 0]).mean((0, 1))
+    assert nods.argmax() == OC1                          # small nods are craniocervical
+    assert nods[OC1] / nods.sum() > (SAGITTAL_TOTAL[OC1] / SAGITTAL_TOTAL.sum()) + 0.05
+
+
+def test_lateral_bending_is_subaxial_and_coupled_with_same_side_rotation(sequences):
+    tilts = of_kind(sequences, "tilt")
+    lateral = np.abs(tilts[..., 2]).mean((0, 1))
+    assert lateral[:6].sum() / lateral.sum() > 0.8       # C2-C3 .. C7-T1
+    # same side: bending to the right (+az) with rotation to the right (-ay) below C2 (Cook et al. 2006)
+    subaxial_axial, subaxial_lateral = tilts[..., :6, 1].ravel(), tilts[..., :6, 2].ravel()
+    assert np.corrcoef(subaxial_axial, subaxial_lateral)[0, 1] < -0.9
+    slope = np.polyfit(subaxial_lateral, subaxial_axial, 1)[0]
+    assert -0.7 < slope < -0.3
+    # C1-C2 turns against the subaxial coupled rotation
+    assert np.corrcoef(tilts[..., C1C2, 1].ravel(), tilts[..., :6, 1].sum(-1).ravel())[0, 1] < -0.5
+
+
+def test_turns_couple_upper_cervical_extension_and_contralateral_bending(sequences):
+    turns = of_kind(sequences, "turn")
+    c1c2_rotation = turns[..., C1C2, 1]
+    large = np.abs(c1c2_rotation) > 25
+    # Ishii et al. 2004 / Salem et al. 2013: O-C1 extends ~12-13 deg and bends to the other side at full rotation
+    assert np.median(turns[..., OC1, 0][large]) < -5
+    assert np.median(turns[..., OC1, 2][large] * np.sign(c1c2_rotation[large])) > 1.5
+
+
+def test_every_pose_is_inside_the_published_limits(sequences):
+    theta = torch.tensor(sequences.theta).reshape(-1, 8, 3)
+    assert within_limits(theta, tolerance=1e-5).all()
+    assert (sequences.persons.ranges_deg <= RANGES_DEG + 1e-9).all()
+    scale = sequences.persons.ranges_deg / RANGES_DEG
+    assert 0.1 < scale.std() / scale.mean() < 0.3        # per-person variation of the segmental ranges
+
+
+def test_sequences_are_smooth_at_their_frame_rate(sequences):
+    euler = np.degrees(sequences.euler)
+    velocity = np.diff(euler, axis=1) * sequences.fps
+    acceleration = np.diff(euler, 2, axis=1) * sequences.fps**2
+    assert np.abs(velocity).max() < 500                  # deg/s, segmental
+    # dominant frequency well below Nyquist: rms(a) / rms(v) = 2 pi f for a sinusoid at f Hz
+    assert np.sqrt((acceleration**2).mean() / (velocity**2).mean()) / (2 * np.pi) < 3.0
+    fast = sample_sequences(8, seed=3, config=PriorConfig(fps=60.0, seconds=2.0))
+    assert fast.theta.shape == (8, 120, 8, 3) and fast.fps == 60.0
+
+
+def test_kinds_seeds_and_head_orientation(sequences, builtin_rig):
+    assert set(sequences.kinds) == set(MOTION_KINDS)
+    again = sample_sequences(4, seed=11)
+    assert np.array_equal(again.theta, sample_sequences(4, seed=11).theta)
+    assert not np.allclose(sample_sequences(4, seed=12).theta, again.theta)
+    head = head_rotations(builtin_rig, again.theta)
+    assert head.shape == (4, 120, 3, 3)
+    direct = builtin_rig.head_rotation(torch.tensor(again.theta[1]))
+    assert torch.allclose(head[1], direct, atol=1e-6)
+
+
+def test_theta_sequence_loader(tmp_path):
+    good = np.zeros((5, 8, 3), np.float32)
+    save_npy(tmp_path / "seq" / "b.npy", good + 0.1)
+    save_npy(tmp_path / "seq" / "a.npy", good)
+    loaded = load_theta_sequences(tmp_path / "seq", fps=25.0)
+    assert [s.source.rsplit("/", 1)[-1] for s in loaded] == ["a.npy", "b.npy"] and loaded[1].fps == 25.0
+    assert loaded[1].theta.shape == (5, 8, 3)
+
+    save_npy(tmp_path / "wrong.npy", np.zeros((5, 7, 3)))
+    with pytest.raises(InputError, match=r"wrong\.npy: array of shape \(5, 7, 3\), expected cervical poses \[T,8,3\]"):
+        load_theta_sequences(tmp_path / "wrong.npy", fps=30.0)
+    degrees = good.copy()
+    degrees[2, 4] = [30.0, 0.0, 0.0]
+    save_npy(tmp_path / "deg.npy", degrees)
+    with pytest.raises(InputError, match=r"deg\.npy: frame 2, joint 4: rotation of 30 rad.*degrees\?"):
+        load_theta_sequences(tmp_path / "deg.npy", fps=30.0)
+    bad = good.copy()
+    bad[3, 0, 1] = np.nan
+    save_npy(tmp_path / "nan.npy", bad)
+    with pytest.raises(InputError, match=r"nan\.npy: non-finite value at index \(3, 0, 1\)"):
+        load_theta_sequences(tmp_path / "nan.npy", fps=30.0)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="empty: folder holds no .npy files"):
+        load_theta_sequences(tmp_path / "empty", fps=30.0)
+    (tmp_path / "poses.csv").write_text("0,0,0\n")
+    with pytest.raises(InputError, match=r"poses\.csv: unsupported format '\.csv'"):
+        load_theta_sequences(tmp_path / "poses.csv", fps=30.0)
+    with pytest.raises(InputError, match="missing.npy: not found"):
+        load_theta_sequences(tmp_path / "missing.npy", fps=30.0)

@@ -1,0 +1,243 @@
+"""Head orientation -> cervical spine (models/head2neck.py, tasks/head2neck.py, motion/head2neck.py).
+
+The learning test trains a tiny model on the anatomical prior (a known generating process) and checks
+it beats both analytic baselines on sequences of new persons.
+"""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from scipy.spatial.transform import Rotation
+
+import train
+from data.cervical_prior import head_rotations, sample_sequences
+from data.io import InputError, save_npy, write_csv
+from models.checkpoint import load_model
+from models.head2neck import (build_model, correct_to_head, head_chain, head_error_deg, predict_theta,
+                              rest_rotations, split_head_rotation)
+from models.joint_limits import within_limits
+from models.rotations import axis_angle_to_matrix, axis_angle_to_quaternion, matrix_to_quaternion, \
+    quaternion_to_matrix, relative_angle
+from motion.head2neck import read_head_rotations, run, ypr_to_matrix
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIGS = str(REPO / "configs")
+# One-side axial rotation per level (White & Panjabi 1990), root to head.
+AXIAL_ONE_SIDE = np.array([2, 6, 7, 7, 7, 3, 40, 5], float)
+
+
+@pytest.fixture(scope="module")
+def poses(builtin_rig):
+    """(theta [F,8,3], head [F,3,3]) of prior sequences of persons no training run sees."""
+    sequences = sample_sequences(24, seed=99)
+    theta = torch.tensor(sequences.theta).reshape(-1, 8, 3)
+    return theta, head_rotations(builtin_rig, theta)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A tiny training run (hidden 128, 400 steps): (final evaluation, run dir)."""
+    run_dir = tmp_path_factory.mktemp("head2neck_run")
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        cfg = compose("train", overrides=[
+            "task=head2neck", "model.hidden=[128,128]", "trainer.max_steps=400", "trainer.eval_every=0",
+            "trainer.checkpoint_every=400", "trainer.progress=false", "trainer.threads=1",
+            "data.train_sequences=192", "data.val_sequences=24", "task.batch_size=512"])
+    return train.fit(cfg, run_dir), run_dir
+
+
+# --------------------------------------------------------------------------- baselines and correction
+
+
+def test_uniform_split_reproduces_the_head_and_rom_split_follows_published_shares(builtin_rig, poses):
+    _, head = poses
+    rest = rest_rotations(builtin_rig)
+    uniform = split_head_rotation(head, rest, "uniform")
+    assert head_error_deg(uniform, head, builtin_rig).max() < 1e-3
+    # a pure turn: each joint's axial share of the bone-frame rotation is its share of the published range
+    yaw = torch.tensor([[0.0, math.radians(40.0), 0.0]])
+    rom = split_head_rotation(axis_angle_to_matrix(yaw), rest, "rom")
+    along_bones = torch.einsum("jkc,k->jc", rest, yaw[0])
+    assert np.allclose(rom[0, :, 1] / along_bones[:, 1], AXIAL_ONE_SIDE / AXIAL_ONE_SIDE.sum(), atol=1e-5)
+    assert 0.5 < float(head_error_deg(rom, axis_angle_to_matrix(yaw), builtin_rig)) < 10  # not exact
+
+
+def test_quaternion_chain_matches_the_rig(builtin_rig, poses):
+    theta, head = poses
+    rest = matrix_to_quaternion(rest_rotations(builtin_rig))
+    chain_head, _ = head_chain(axis_angle_to_quaternion(theta[:500]), rest)
+    assert torch.allclose(quaternion_to_matrix(chain_head), head[:500], atol=1e-5)
+
+
+def test_correction_is_exact_and_inside_the_limits(builtin_rig, poses):
+    theta, head = poses
+    rest = rest_rotations(builtin_rig)
+    for start in (split_head_rotation(head, rest, "rom"),
+                  theta + 0.05 * torch.randn(theta.shape, generator=torch.Generator().manual_seed(0))):
+        assert head_error_deg(start, head, builtin_rig).max() > 5.0
+        assert head_error_deg(correct_to_head(start, head, builtin_rig, iterations=2), head, builtin_rig).max() < 0.1
+        corrected = correct_to_head(start, head, builtin_rig, iterations=3)
+        assert head_error_deg(corrected, head, builtin_rig).max() < 0.01
+        assert within_limits(corrected).all()
+    # an exact pose inside the limits is left alone
+    assert (correct_to_head(theta, head, builtin_rig) - theta).abs().max() < 1e-4
+
+
+@pytest.mark.shared
+def test_correction_is_exact_on_the_real_rig(real_rig, poses):
+    theta = poses[0][:2000]
+    head = head_rotations(real_rig, theta)
+    start = split_head_rotation(head, rest_rotations(real_rig), "rom")
+    corrected = correct_to_head(start, head, real_rig)
+    assert head_error_deg(corrected, head, real_rig).max() < 0.01 and within_limits(corrected).all()
+
+
+def test_predict_theta_refuses_a_model_of_another_rig(builtin_rig, poses):
+    model = build_model({"rest_rotations": torch.eye(3).expand(8, 3, 3).tolist(), "hidden": [8]})
+    with pytest.raises(ValueError, match="rest frames differ"):
+        predict_theta(model, builtin_rig, poses[1][:4])
+
+
+# --------------------------------------------------------------------------- learning
+
+
+def test_tiny_training_beats_both_baselines_on_new_persons(tiny_run):
+    final, run_dir = tiny_run
+    assert final["joint_err_deg"] < 0.6 * final["rom_joint_err_deg"]
+    assert final["rom_joint_err_deg"] < final["uniform_joint_err_deg"]
+    assert final["head_err_max_deg"] < 0.1
+    assert final["within_limits"] == 1.0
+    assert (run_dir / "checkpoints" / "last.pt").is_file() and (run_dir / "eval.json").is_file()
+
+
+def test_trained_model_generalises_to_fresh_sequences(tiny_run, builtin_rig, poses):
+    theta, head = poses
+    model, state = load_model(tiny_run[1] / "checkpoints" / "last.pt", task="head2neck")
+    predicted = predict_theta(model, builtin_rig, head)
+    error = torch.rad2deg(relative_angle(axis_angle_to_matrix(predicted), axis_angle_to_matrix(theta))).mean()
+    rom = correct_to_head(split_head_rotation(head, model.rest, "rom"), head, builtin_rig)
+    rom_error = torch.rad2deg(relative_angle(axis_angle_to_matrix(rom), axis_angle_to_matrix(theta))).mean()
+    assert error < 0.6 * rom_error
+    assert head_error_deg(predicted, head, builtin_rig).max() < 0.1 and within_limits(predicted).all()
+
+
+def test_theta_seq_data_trains_and_holds_out_whole_files(tmp_path, builtin_rig):
+    from tasks.head2neck import Task
+
+    sequences = sample_sequences(5, seed=7)
+    for i, theta in enumerate(sequences.theta):
+        save_npy(tmp_path / "seq" / f"take{i}.npy", theta)
+
+    def config(path, *extra):
+        with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+            return compose("train", overrides=[
+                "task=head2neck", "data=theta_seq", f"data.path={path}", "model.hidden=[64]",
+                "trainer.max_steps=150", "trainer.eval_every=0", "trainer.progress=false", "trainer.threads=1",
+                *extra])
+
+    one_file = Task(config(tmp_path / "seq" / "take0.npy"))
+    assert torch.equal(one_file.val["theta"], torch.tensor(sequences.theta[0, 96:]))  # the last 20% of frames
+    cfg = config(tmp_path / "seq")
+    task = Task(cfg)
+    assert len(task.val["theta"]) == 120 and len(task.train["theta"]) == 4 * 120  # 1 of 5 files held out
+    (tmp_path / "run").mkdir()
+    train.fit(cfg, tmp_path / "run")
+    model, _ = load_model(tmp_path / "run" / "checkpoints" / "last.pt", task="head2neck")
+    head, truth = task.train["head"], task.train["rotations"]
+
+    def error(theta):
+        return torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), truth)).mean()
+
+    rom = correct_to_head(split_head_rotation(head, model.rest, "rom"), head, builtin_rig)
+    assert error(predict_theta(model, builtin_rig, head)) < 0.8 * error(rom)  # it learnt the files' poses
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def test_yaw_pitch_roll_convention():
+    deg = math.radians
+    face, up = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 1.0, 0.0])
+    turn, nod, tilt = (ypr_to_matrix(torch.tensor(a)) for a in ([deg(30), 0, 0], [0, deg(20), 0], [0, 0, deg(20)]))
+    assert (turn @ face)[0] > 0.49        # face turns to the subject's left (+x)
+    assert (nod @ face)[1] < -0.34        # looks down
+    assert (tilt @ up)[0] < -0.34         # crown towards the subject's right shoulder (-x)
+    ypr = torch.tensor([0.4, -0.2, 0.3])
+    expected = Rotation.from_euler("YXZ", ypr.numpy()).as_matrix()  # intrinsic yaw, pitch, roll
+    assert np.allclose(ypr_to_matrix(ypr).numpy(), expected, atol=1e-6)
+
+
+def cli_config(**overrides):
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        return compose("head2neck", overrides=[f"{k}={v}" for k, v in overrides.items()])
+
+
+def test_cli_round_trip_matrices_ypr_and_capture_csv(tiny_run, builtin_rig, poses, tmp_path):
+    checkpoint = tiny_run[1] / "checkpoints" / "last.pt"
+    head = poses[1][:90].numpy().astype(np.float64)
+    save_npy(tmp_path / "rotations.npy", head)
+    from_matrices = run(cli_config(checkpoint=checkpoint, input=tmp_path / "rotations.npy",
+                                   out=tmp_path / "theta_m.npy", threads=1))
+    written = np.load(tmp_path / "theta_m.npy")
+    assert written.shape == (90, 8, 3) and written.dtype == np.float32 and np.array_equal(written, from_matrices)
+    assert head_error_deg(torch.tensor(written), torch.tensor(head, dtype=torch.float32), builtin_rig).max() < 0.1
+
+    ypr = Rotation.from_matrix(head).as_euler("YXZ")  # yaw, pitch, roll of our convention (scipy, independent)
+    save_npy(tmp_path / "ypr.npy", np.degrees(ypr))
+    from_ypr = run(cli_config(checkpoint=checkpoint, input=tmp_path / "ypr.npy", units="deg",
+                              out=tmp_path / "theta_y.npy", threads=1))
+    assert np.abs(from_ypr - from_matrices).max() < 1e-3
+    save_npy(tmp_path / "ypr_flipped.npy", ypr * [-1, 1, -1])  # a mirrored capture
+    flipped = run(cli_config(checkpoint=checkpoint, input=tmp_path / "ypr_flipped.npy", yaw_sign=-1, roll_sign=-1,
+                             out=tmp_path / "theta_f.npy", threads=1))
+    assert np.abs(flipped - from_matrices).max() < 1e-3
+
+    columns = {"Timecode": [f"10:00:{i // 30:02d}:{i % 30:02d}.000" for i in range(90)],
+               "BlendShapeCount": [61] * 90, "JawOpen": np.full(90, 0.2), "EyeBlinkLeft": np.zeros(90),
+               "HeadYaw": ypr[:, 0], "HeadPitch": ypr[:, 1], "HeadRoll": ypr[:, 2]}
+    write_csv(tmp_path / "take.csv", columns, float_format="%.9f")
+    from_csv = run(cli_config(checkpoint=checkpoint, input=tmp_path / "take.csv", out=tmp_path / "theta_c.npy",
+                              threads=1))
+    assert np.abs(from_csv - from_matrices).max() < 1e-3
+
+
+def test_cli_errors_name_the_file_and_frame(tmp_path):
+    bad = np.tile(np.eye(3), (4, 1, 1))
+    bad[2] *= 2.0
+    save_npy(tmp_path / "bad.npy", bad)
+    with pytest.raises(InputError, match=r"bad\.npy: frame 2 is not a rotation matrix"):
+        read_head_rotations(tmp_path / "bad.npy")
+    save_npy(tmp_path / "wide.npy", np.zeros((4, 4)))
+    with pytest.raises(InputError, match=r"wide\.npy: array of shape \(4, 4\), expected yaw, pitch, roll \[T,3\]"):
+        read_head_rotations(tmp_path / "wide.npy")
+    save_npy(tmp_path / "degrees.npy", np.full((4, 3), 30.0))
+    with pytest.raises(InputError, match=r"degrees\.npy: angles up to 30 rad after units=rad.*wrong units"):
+        read_head_rotations(tmp_path / "degrees.npy")
+    write_csv(tmp_path / "nohead.csv", {"Timecode": ["10:00:00:01.000", "10:00:00:02.000"],
+                                        "JawOpen": [0.1, 0.2], "HeadYaw": [0.0, 0.0], "HeadPitch": [0.0, 0.0],
+                                        "HeadRoll": [0.0, 0.0]})
+    with pytest.raises(InputError, match=r"nohead\.csv: no head rotation recorded"):
+        read_head_rotations(tmp_path / "nohead.csv")
+
+
+def test_cli_module_end_to_end(tiny_run, poses, tmp_path):
+    save_npy(tmp_path / "rotations.npy", poses[1][:30].numpy())
+    out = tmp_path / "theta.npy"
+    result = subprocess.run([sys.executable, "-m", "motion.head2neck", f"checkpoint={tiny_run[1] / 'checkpoints' / 'last.pt'}",
+                             f"input={tmp_path / 'rotations.npy'}", f"out={out}", "threads=1"],
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert np.load(out).shape == (30, 8, 3)
+    residual = float(result.stdout.split("residual: max ")[1].split(" deg")[0])
+    assert residual < 0.1 and "outside the limits: none" in result.stdout
+    missing = subprocess.run([sys.executable, "-m", "motion.head2neck", "checkpoint=nowhere.pt",
+                              f"input={tmp_path / 'rotations.npy'}", f"out={out}"],
+                             cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 2 and "nowhere.pt: checkpoint not found" in missing.stderr
