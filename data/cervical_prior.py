@@ -5,7 +5,8 @@ mapping; without motion capture we learn it from this generator, whose
 segmental statistics follow the published ranges of motion
 (``models.joint_limits.RANGES_DEG``, the single source of the per-level
 ranges) plus the facts and assumptions listed below.  Angles are Euler angles
-per joint in its bone frame (``models.rotations``: ``R = Rz(az) Ry(ay) Rx(ax)``;
+per joint in its anatomical frame (``HeadNeckModel.to_anatomical``; the rig
+takes ``rig.from_anatomical(theta)``) (``models.rotations``: ``R = Rz(az) Ry(ay) Rx(ax)``;
 ``ax`` flexion +, ``ay`` axial rotation + to the subject's left, ``az`` lateral
 bending + to the subject's right), joints root to head (``JOINT_LEVELS``).
 Head orientation follows by forward kinematics (``HeadNeckModel.head_rotation``).
@@ -146,7 +147,7 @@ class Persons:
 class ThetaSequences:
     """N sequences of T frames at ``fps``.
 
-    theta:  [N,T,J,3] float32 axis-angle radians per joint in its bone frame.
+    theta:  [N,T,J,3] float32 axis-angle radians per joint in its anatomical frame.
     euler:  [N,T,J,3] float32 the same poses as Euler angles (ax, ay, az), radians.
     drives: [N,T,3] sagittal, axial, lateral drives in [-1, 1].
     kinds:  [N] motion kind names (``MOTION_KINDS``).
@@ -308,8 +309,10 @@ def sample_sequences(count: int, seed: int, config: PriorConfig = PriorConfig())
 
 @torch.no_grad()
 def head_rotations(rig, theta: torch.Tensor | np.ndarray, chunk: int = 65536) -> torch.Tensor:
-    """Head orientation of poses by the rig's forward kinematics.  theta [...,J,3] -> [...,3,3] float32."""
-    theta = torch.as_tensor(theta, dtype=torch.float32)
+    """Head orientation of poses by the rig's forward kinematics.
+
+    theta [...,J,3] in anatomical joint frames -> [...,3,3] float32."""
+    theta = rig.from_anatomical(torch.as_tensor(theta, dtype=torch.float32))
     flat = theta.reshape(-1, theta.shape[-2], 3)
     out = torch.cat([rig.head_rotation(flat[i:i + chunk]) for i in range(0, len(flat), chunk)])
     return out.reshape(*theta.shape[:-2], 3, 3)

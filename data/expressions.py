@@ -195,9 +195,11 @@ def read_expressions(path: str | os.PathLike, fps: float | None = None,
         first = f.readline().strip().split(",")
     try:
         [float(x) for x in first]
-        return _read_headerless(path, fps)
+        headerless = True
     except ValueError:
-        pass
+        headerless = False
+    if headerless:  # outside the try: InputError is a ValueError and must reach the caller
+        return _read_headerless(path, fps)
 
     # Live Link Face writes "<timecode>,0" when tracking is lost: those frames are dropped
     # (resampling to a uniform grid interpolates over them).

@@ -269,7 +269,7 @@ def write_tau_track(path: str | os.PathLike, track: TauTrack, **extra: Sequence)
     columns = {"frame": np.arange(len(track)), "time": track.time, "tau": track.tau}
     columns.update(extra)
     columns["fps"] = np.full(len(track), track.fps)
-    write_csv(path, columns)
+    write_csv(path, columns, float_format="%.9g")  # time of an hour-long take to 1e-5 s
 
 
 def resample_uniform(time: np.ndarray, values: np.ndarray, fps: float, start: float | None = None,

@@ -2,8 +2,11 @@
 
 Facial trackers give one head orientation ``H`` (``[B,3,3]``, the rig's world
 frame, the definition of ``HeadNeckModel.head_rotation``); HACK needs theta
-``[B,8,3]`` (axis-angle per joint in its bone frame).  With ``C_j`` the rest
-world rotation of bone j and ``R_j = exp(theta_j)``, the chain's head
+``[B,8,3]`` (axis-angle per joint in its bone frame).  Everything here works in
+the joints' *anatomical* frames (``HeadNeckModel.to_anatomical``), where the
+joint limits are written; :func:`predict_theta` returns bone-frame theta for
+the rig.  With ``C_j`` the rest world rotation of joint j's anatomical frame
+(``HeadNeckModel.anatomical_rest_rotations``) and ``R_j = exp(theta_j)``, the chain's head
 orientation is ``H(theta) = prod_j C_j R_j C_j^T`` (root first), so joint j
 contributes the world rotation vector ``C_j theta_j`` when the joints rotate
 about one axis.
@@ -67,8 +70,8 @@ ACTIVATIONS = {"silu": lambda: nn.SiLU(inplace=True), "relu": lambda: nn.ReLU(in
 
 
 def rest_rotations(rig) -> torch.Tensor:
-    """Rest world rotations of the bones C_j [J,3,3] of a ``HeadNeckModel``."""
-    return rig.rest_world[:, :3, :3].detach().clone()
+    """Rest world rotations C_j [J,3,3] of the anatomical joint frames of a ``HeadNeckModel``."""
+    return rig.anatomical_rest_rotations.detach().clone()
 
 
 def range_shares(dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
@@ -193,7 +196,8 @@ def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iter
                     tolerance_deg: float = 1e-3, damping: float = 1e-8, margin: float = 1.0) -> torch.Tensor:
     """Spread the residual between the chain's head orientation and the target over the joints.
 
-    theta [B,J,3], head_rotations [B,3,3] (target) -> theta [B,J,3] inside the joint limits (``margin``
+    theta [B,J,3] (anatomical frames), head_rotations [B,3,3] (target) -> theta [B,J,3] (anatomical
+    frames) inside the joint limits (``margin``
     scales them) whose head orientation matches the target (see the module docstring).  At most
     ``iterations`` steps, fewer once every residual is below ``tolerance_deg``.  The steps are taken on
     the joints' Euler angles, so the limits are a clamp: with E_j the Euler-rate axes
@@ -202,7 +206,7 @@ def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iter
     dtype = theta.dtype
     lower, upper = (x.to(dtype) for x in euler_limits(margin))
     chain = chain_to(rig.parents, len(rig.parents) - 1)
-    rest = matrix_to_quaternion(rig.rest_world[chain, :3, :3].to(dtype))
+    rest = matrix_to_quaternion(rest_rotations(rig)[chain].to(dtype))
     lower, upper = lower[chain], upper[chain]
     target_inverse = matrix_to_quaternion(head_rotations.to(dtype).transpose(-1, -2))
     euler = axis_angle_to_euler(theta)
@@ -228,7 +232,8 @@ def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iter
 
 
 def head_error_deg(theta: torch.Tensor, head_rotations: torch.Tensor, rig) -> torch.Tensor:
-    """Angle (degrees) between the chain's head orientation (``rig.head_rotation``) and the target.  -> [B]."""
+    """Angle (degrees) between the head orientation of bone-frame theta (``rig.head_rotation``) and the
+    target.  -> [B]."""
     head = rig.head_rotation(theta)
     return torch.rad2deg(relative_angle(head, head_rotations.to(head)))
 
@@ -243,10 +248,11 @@ def check_rig(model: Head2NeckMLP, rig, tolerance: float = 1e-4) -> None:
 @torch.no_grad()
 def predict_theta(model: Head2NeckMLP, rig, head_rotations: torch.Tensor, iterations: int = 3,
                   chunk: int = 4096) -> torch.Tensor:
-    """Head orientations [T,3,3] -> theta [T,J,3]: the MLP, then the exact correction, in chunks."""
+    """Head orientations [T,3,3] -> bone-frame theta [T,J,3] for ``rig``: the MLP, then the exact
+    correction, in chunks."""
     check_rig(model, rig)
     head_rotations = torch.as_tensor(head_rotations, dtype=torch.float32)
     if head_rotations.ndim != 3 or head_rotations.shape[1:] != (3, 3):
         raise ValueError(f"head_rotations has shape {list(head_rotations.shape)}, expected [T,3,3]")
     out = [correct_to_head(model(part), part, rig, iterations) for part in head_rotations.split(chunk)]
-    return torch.cat(out) if out else head_rotations.new_zeros(0, model.num_joints, 3)
+    return rig.from_anatomical(torch.cat(out)) if out else head_rotations.new_zeros(0, model.num_joints, 3)

@@ -1,7 +1,9 @@
 """Anatomical joint limits of the cervical spine, the paper's pose priors, and a clamp.
 
-Angles are Euler angles of each joint's rotation in its bone frame
-(``models.rotations``: ``R = Rz(az) Ry(ay) Rx(ax)``): ``ax`` flexion (+) /
+Angles are Euler angles of each joint's rotation in its *anatomical* frame
+(``HeadNeckModel.to_anatomical``; on the built-in rig the bone frames are
+anatomical already, on the release oc1's is not), with
+``R = Rz(az) Ry(ay) Rx(ax)`` (``models.rotations``): ``ax`` flexion (+) /
 extension (-), ``ay`` axial rotation (+ = to the subject's left), ``az``
 lateral bending (+ = to the subject's right).
 
@@ -68,7 +70,7 @@ def range_of_motion_share() -> torch.Tensor:
 def rotation_limit_energy(theta: torch.Tensor, margin: float = 1.0) -> torch.Tensor:
     """The paper's E_rot: squared excess of each joint's Euler angles over its limits.
 
-    theta [B,J,3] axis-angle -> [B] (radians^2).
+    theta [B,J,3] axis-angle in anatomical frames -> [B] (radians^2).
     """
     lower, upper = (x.to(theta) for x in euler_limits(margin))
     euler = axis_angle_to_euler(theta)
@@ -87,14 +89,14 @@ def adjacent_similarity_energy(theta: torch.Tensor, parents: list[int] | None = 
 
 
 def clamp_to_limits(theta: torch.Tensor, margin: float = 1.0) -> torch.Tensor:
-    """Clamp each joint's Euler angles into its limits.  theta [B,J,3] -> [B,J,3]."""
+    """Clamp each joint's Euler angles into its limits.  theta [B,J,3] (anatomical frames) -> [B,J,3]."""
     lower, upper = (x.to(theta) for x in euler_limits(margin))
     euler = axis_angle_to_euler(theta)
     return euler_to_axis_angle(torch.maximum(torch.minimum(euler, upper), lower))
 
 
 def within_limits(theta: torch.Tensor, margin: float = 1.0, tolerance: float = 1e-4) -> torch.Tensor:
-    """[B,J] True where a joint's Euler angles lie inside its limits (+ ``tolerance`` radians)."""
+    """[B,J] True where a joint's Euler angles (anatomical frames) lie inside its limits (+ ``tolerance`` rad)."""
     lower, upper = (x.to(theta) for x in euler_limits(margin))
     euler = axis_angle_to_euler(theta)
     return ((euler >= lower - tolerance) & (euler <= upper + tolerance)).all(dim=-1)

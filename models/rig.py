@@ -20,6 +20,14 @@ Conventions (the project's, owned here):
   bilinearly with ``align_corners=True`` and border padding as the release.
 - "Head orientation" is ``head_rotation(theta)``: the world rotation of the
   oc1 bone relative to its rest, ``G_oc1(theta)[:3,:3] @ G_oc1(0)[:3,:3]^T``.
+- Anatomical joint frames: a bone's own axes need not be anatomical (the
+  release's oc1 bone points into the face, so its y axis is forward).  Each
+  joint's anatomical frame (x lateral to the subject's left, y up the spine,
+  z forward) is its bone frame turned by the quarter-turn rotation that best
+  aligns it with the world axes at rest (``anatomical_axes`` [J,3,3], the
+  anatomical axes as columns in bone coordinates).  Joint limits and priors
+  (``models.joint_limits``) speak anatomical frames: convert with
+  ``to_anatomical(theta)`` / ``from_anatomical(theta_anatomical)``.
 """
 from __future__ import annotations
 
@@ -91,6 +99,18 @@ def forward_kinematics(rotations: torch.Tensor, rest_local: torch.Tensor, parent
     return torch.stack(world, dim=1)
 
 
+def nearest_axis_permutation(rotation: torch.Tensor) -> torch.Tensor:
+    """The signed permutation matrix (a proper rotation by quarter turns) nearest to ``rotation`` [3,3]."""
+    remaining = rotation.abs().clone()
+    out = torch.zeros_like(rotation)
+    for _ in range(3):
+        row, column = divmod(int(torch.argmax(remaining)), 3)
+        out[row, column] = torch.sign(rotation[row, column])
+        remaining[row, :] = -1.0
+        remaining[:, column] = -1.0
+    return out
+
+
 def skinning_transforms(world: torch.Tensor, rest_world_inverse: torch.Tensor) -> torch.Tensor:
     """Per-bone transforms from rest to posed space: G_j(theta) @ G_j(0)^-1, top 3 rows.
 
@@ -147,6 +167,9 @@ class HeadNeckModel(nn.Module):
                                         torch.tensor(rig.joint_rest_local, dtype=torch.float64), self.parents)[0]
         self.register_buffer("rest_world", rest_world.to(dtype))
         self.register_buffer("rest_world_inverse", torch.linalg.inv(rest_world).to(dtype))
+        # Columns: world x, y, z in each bone's coordinates, snapped to the nearest quarter turns.
+        axes = torch.stack([nearest_axis_permutation(r[:3, :3].T) for r in rest_world])
+        self.register_buffer("anatomical_axes", axes.to(dtype))
         self.register_buffer("larynx_maps", torch.tensor(rig.larynx_maps, dtype=dtype))
         self.register_buffer("larynx_direction", torch.tensor(rig.larynx_direction, dtype=dtype))
         # Only vertices whose map column (or its bilinear neighbour) holds a non-zero value can
@@ -211,6 +234,19 @@ class HeadNeckModel(nn.Module):
         """Head orientation [B,3,3]: oc1's world rotation relative to rest."""
         world = self.joint_transforms(theta)
         return world[:, -1, :3, :3] @ self.rest_world[-1, :3, :3].T
+
+    def to_anatomical(self, theta: torch.Tensor) -> torch.Tensor:
+        """theta [...,J,3] in bone frames -> the same rotations in anatomical joint frames."""
+        return torch.einsum("jab,...ja->...jb", self.anatomical_axes.to(theta), theta)
+
+    def from_anatomical(self, theta: torch.Tensor) -> torch.Tensor:
+        """theta [...,J,3] in anatomical joint frames -> bone frames (the model's input)."""
+        return torch.einsum("jab,...jb->...ja", self.anatomical_axes.to(theta), theta)
+
+    @property
+    def anatomical_rest_rotations(self) -> torch.Tensor:
+        """[J,3,3] rest world rotations of the anatomical joint frames (bone rest rotation @ axes)."""
+        return self.rest_world[:, :3, :3] @ self.anatomical_axes
 
     def joint_positions(self, theta: torch.Tensor) -> torch.Tensor:
         """World positions of the joints (bone origins) [B,J,3]."""

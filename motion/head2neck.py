@@ -149,7 +149,7 @@ def run(cfg: DictConfig) -> np.ndarray:
         head = recentered(head)
     theta = predict_theta(model, rig, head, int(cfg.iterations))
     error = head_error_deg(theta, head, rig)
-    outside = ~within_limits(theta)
+    outside = ~within_limits(rig.to_anatomical(theta))
     save_npy(cfg.out, theta.numpy().astype(np.float32))
     print(f"{cfg.input}: {description} -> {cfg.out} theta {list(theta.shape)}")
     print(f"head orientation residual: max {float(error.max()):.4f} deg, mean {float(error.mean()):.5f} deg")

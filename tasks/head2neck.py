@@ -7,6 +7,8 @@ Data (``cfg.data.kind``):
   ``data.fps``); several files are split by file (``val_fraction`` of them, chosen with ``seed``), a
   single file by time (its last ``val_fraction`` of frames).
 Head orientations are the rig's forward kinematics of the poses (``cfg.rig``, built-in by default).
+Poses are handled in the joints' anatomical frames (``HeadNeckModel.to_anatomical``), where the limits
+and the prior are written; real sequences arrive in bone frames (the release's layout) and are converted.
 
 Loss per batch of frames (``configs/task/head2neck.yaml``)::
 
@@ -89,7 +91,8 @@ class Task:
             return [train.theta.reshape(-1, *train.theta.shape[2:])], \
                 [val.theta.reshape(-1, *val.theta.shape[2:])], description
         if data.kind == "theta_seq":
-            sequences = [s.theta for s in load_theta_sequences(data.path, float(data.fps), self.rig.num_joints)]
+            sequences = [self.rig.to_anatomical(torch.as_tensor(s.theta)).numpy()  # release layout: bone frames
+                         for s in load_theta_sequences(data.path, float(data.fps), self.rig.num_joints)]
             return split_sequences(sequences, float(data.val_fraction), int(self.cfg.seed), str(data.path))
         raise ValueError(f"task head2neck: unknown data kind '{data.kind}', expected synthetic or theta_seq")
 
@@ -107,7 +110,8 @@ class Task:
         task = self.cfg.task
         theta = self.model(batch["head"])
         joint = 0.5 * ((axis_angle_to_matrix(theta) - batch["rotations"]) ** 2).sum((-1, -2)).mean()
-        consistency = 0.5 * ((self.rig.head_rotation(theta) - batch["head"]) ** 2).sum((-1, -2)).mean()
+        head = self.rig.head_rotation(self.rig.from_anatomical(theta))
+        consistency = 0.5 * ((head - batch["head"]) ** 2).sum((-1, -2)).mean()
         e_rot = rotation_limit_energy(theta).mean()
         e_sim = adjacent_similarity_energy(theta, self.rig.parents).mean()
         loss = joint + task.lambda_fk * consistency + task.lambda_rot * e_rot + task.lambda_sim * e_sim
@@ -132,7 +136,7 @@ class Task:
         rows = {}
         for name, theta in methods.items():
             per_joint = torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), truth)).mean(0)
-            head_error = head_error_deg(theta, head, self.rig)
+            head_error = head_error_deg(self.rig.from_anatomical(theta), head, self.rig)
             rows[name] = (per_joint, float(head_error.max()), float(within_limits(theta).float().mean()))
         per_joint, head_max, inside = rows["model"]
         metrics = {"joint_err_deg": float(per_joint.mean()), "head_err_max_deg": head_max, "within_limits": inside}

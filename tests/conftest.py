@@ -48,3 +48,12 @@ def real_rig(real_rig_file):
     from models.rig import HeadNeckModel
 
     return HeadNeckModel.load(real_rig_file)
+
+
+@pytest.fixture(scope="session")
+def livelinkface_samples() -> list[Path]:
+    """The real Live Link Face recordings in ``../shared/samples/livelinkface`` (skips when absent)."""
+    files = sorted((SAMPLES_DIR / "livelinkface").glob("*.csv"))
+    if not files:
+        pytest.skip(f"Live Link Face samples not found in {SAMPLES_DIR / 'livelinkface'}")
+    return files

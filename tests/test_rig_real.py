@@ -47,3 +47,18 @@ def test_real_rig_interface(real_rig):
     assert real_rig.num_vertices == 14062 and real_rig.faces.shape == (14034, 4)
     assert real_rig.joint_names[0] == "c7t1" and real_rig.joint_names[-1] == "oc1"
     assert torch.allclose(real_rig.head_rotation(real_rig.neutral(1)), torch.eye(3)[None], atol=1e-6)
+
+
+def test_anatomical_frames_turn_the_release_oc1_upright(real_rig):
+    """The release's oc1 bone points into the face; its anatomical frame is the quarter turn that
+    makes +x flexion, +y axial rotation (to the subject's left), +z lateral bending, as for the others."""
+    assert torch.allclose(real_rig.anatomical_axes[:-1], torch.eye(3).expand(7, 3, 3))
+    assert torch.allclose(real_rig.anatomical_rest_rotations[-1], torch.eye(3), atol=1e-5)
+    nose = int(torch.argmax(real_rig.template[:, 2]))
+    crown = int(torch.argmax(real_rig.template[:, 1]))
+    # flexion: the nose goes down; axial rotation: the nose turns to +x; lateral bending: the crown tips to -x
+    for axis, vertex, coordinate, sign in ((0, nose, 1, -1.0), (1, nose, 0, 1.0), (2, crown, 0, -1.0)):
+        theta = torch.zeros(1, 8, 3)
+        theta[0, -1, axis] = 0.2  # oc1 alone, in its anatomical frame
+        posed = real_rig(real_rig.from_anatomical(theta), eta=torch.zeros(1))[0, vertex]
+        assert sign * (posed - real_rig.template[vertex])[coordinate] > 1.0, axis

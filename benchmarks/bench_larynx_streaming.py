@@ -1,0 +1,154 @@
+"""Streaming speed of the expression -> larynx transformer on CPU.
+
+    python benchmarks/bench_larynx_streaming.py [--checkpoint runs/.../last.pt] [--far 100000] [--threads 2]
+
+Prints:
+- frames/s of the whole-sequence API (``generate``) and of the live per-frame API (``step``), B = 1;
+- the per-frame cost (median over 500 frames) at frame 100, 10,000 and ``--far``, and the size of
+  the decoder's cache there (constant: bounded memory);
+- FaceFormer-style decoding, which reruns the model on the whole prefix at every frame
+  (``generate_uncached``): its per-frame cost at prefix 100, 600 (FaceFormer's limit) and 2,000
+  frames, the ratio to streaming, and the total time of a 600-frame clip both ways.
+
+Without ``--checkpoint`` the model has the default size (``configs/model/larynx_transformer.yaml``)
+and random weights; speed does not depend on the weights.  The CPU may be shared with other
+processes: figures are medians, and the load average is printed beside them.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from models.checkpoint import load_model  # noqa: E402
+from models.larynx_transformer import build_model, single_thread  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def default_model():
+    config = OmegaConf.to_container(OmegaConf.load(REPO / "configs" / "model" / "larynx_transformer.yaml"))
+    torch.manual_seed(0)
+    return build_model({**config, "fps": 30.0}).eval()
+
+
+def frames_per_second(run, frames: int, repeats: int = 3) -> float:
+    """Best of ``repeats`` (the least disturbed by other processes)."""
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        best = min(best, time.perf_counter() - start)
+    return frames / best
+
+
+def streaming_costs(model, psi: torch.Tensor, positions: list[int], span: int = 500) -> dict[int, tuple[float, int]]:
+    """Median seconds per frame over ``span`` frames from each position, and the cache size there.
+
+    One stream per position is first decoded up to it (untimed); the streams then take turns, one
+    frame each, so that load from other processes falls on all positions alike.
+    """
+    chunk = 1024
+    chunks = len(psi) // chunk
+
+    streams = {p: model.stream(1) for p in positions}
+    encoded: dict[int, list] = {}
+
+    def inputs(p: int, t: int):  # stream p's cross-attention inputs of frame t, encoded by chunks as generate() does
+        if t % chunk == 0 or p not in encoded:
+            c = (t // chunk) % chunks
+            encoded[p] = streams[p].encode(psi[None, c * chunk:(c + 1) * chunk])
+        return [frames[t % chunk] for frames in encoded[p]]
+
+    times = {p: [] for p in positions}
+    with torch.inference_mode(), single_thread():  # as generate() and step() run
+        for p, stream in streams.items():
+            for t in range(p):
+                stream.advance(inputs(p, t))
+        for i in range(span):
+            for p, stream in streams.items():
+                cross = inputs(p, p + i)
+                start = time.perf_counter()
+                stream.advance(cross)
+                times[p].append(time.perf_counter() - start)
+    return {p: (float(np.median(times[p])), streams[p].cache_elements()) for p in positions}
+
+
+def best_over_threads(run, threads: int) -> tuple[float, int]:
+    """(seconds, threads) of the faster of 1 and ``threads`` torch threads: on a CPU shared with other
+    processes a second thread can stall, and FaceFormer-style decoding should get its best case."""
+    results = []
+    for count in sorted({1, threads}):
+        torch.set_num_threads(count)
+        results.append((run(), count))
+    torch.set_num_threads(threads)
+    return min(results)
+
+
+def recompute_cost(model, psi: torch.Tensor, prefix: int, repeats: int = 5) -> float:
+    """Seconds for one FaceFormer-style frame: the model rerun on the whole prefix (median of ``repeats``)."""
+    previous = torch.zeros(1, prefix)
+    times = []
+    with torch.no_grad():
+        for _ in range(repeats):
+            start = time.perf_counter()
+            model(psi[None, :prefix], previous)
+            times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def timed(run) -> float:
+    start = time.perf_counter()
+    run()
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--checkpoint", help="a larynx_transformer checkpoint (default: random default-size model)")
+    parser.add_argument("--far", type=int, default=100_000, help="farthest frame whose cost is measured")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    model = load_model(args.checkpoint, "larynx_transformer")[0] if args.checkpoint else default_model()
+    cfg = model.config
+    print(f"model: d_model {cfg['d_model']}, {cfg['n_layers']} layers, {cfg['n_heads']} heads, window "
+          f"{cfg['window']}, cross window {cfg['cross_window']}; torch threads {args.threads}; "
+          f"load average {os.getloadavg()[0]:.2f}")
+    psi = torch.rand(20_000, 55, generator=torch.Generator().manual_seed(0))
+
+    whole = frames_per_second(lambda: model.generate(psi[None]), len(psi))
+    stream = model.stream(1)
+    live = frames_per_second(lambda: [stream.step(psi[t]) for t in range(2000)], 2000)
+    print(f"\nstreaming, B=1:  generate() {whole:8.0f} frames/s   step() {live:8.0f} frames/s")
+
+    positions = [100, 10_000, args.far]
+    costs = streaming_costs(model, psi, positions)
+    print("\nper-frame cost of the cached decoder:")
+    for p in positions:
+        print(f"  frame {p:>7}: {costs[p][0] * 1e3:6.3f} ms   cache {costs[p][1]} values")
+    flat = costs[args.far][0] / costs[100][0]
+    print(f"  cost at frame {args.far} / frame 100 = {flat:.2f}")
+
+    print("\nFaceFormer-style full-prefix recomputation (per frame, best of 1 and %d threads):" % args.threads)
+    for prefix in (100, 600, 2000):
+        cost, threads = best_over_threads(lambda: recompute_cost(model, psi, prefix), args.threads)
+        print(f"  prefix {prefix:>5}: {cost * 1e3:8.2f} ms = {cost / costs[100][0]:6.1f} x streaming ({threads} thread)")
+    clip = psi[None, :600]
+    uncached, threads = best_over_threads(lambda: timed(lambda: model.generate_uncached(clip)), args.threads)
+    cached = min(timed(lambda: model.generate(clip)) for _ in range(3))
+    print(f"  600-frame clip: recomputation {uncached:.2f} s ({threads} thread), streaming {cached:.3f} s, "
+          f"ratio {uncached / cached:.0f} x")
+    print(f"\nload average now {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

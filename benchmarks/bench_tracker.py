@@ -1,0 +1,112 @@
+"""Larynx tracker and normal-map renderer: speed and accuracy on synthetic sequences.
+
+    python benchmarks/bench_tracker.py [--threads 1,2] [--seeds 4] [--frames 150] [--rig rig.npz]
+
+Prints, for each thread count (torch and OpenCV; the 2 cores are shared, so compare runs taken
+together):
+- renderer frames/s (256x256 neck view, batches of 32 frames with head motion and tau), with the rig's
+  forward pass included and without it;
+- tracker frames/s on 256x256 decoded frames with the search band (the target is >= 300), and the
+  whole per-frame path from 8-bit RGB (decode + validation + tracking);
+- accuracy over ``--seeds`` sequences (noise 0.05, 3 degrees of head motion, swallows): median / p95
+  / max error in pixels of the tracker, of the tracker without the row high-pass, with temporal
+  smoothing, and of the baseline (integer arg-max of the raw correlation over the whole frame).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from data.normal_sequences import SequenceConfig, head_motion, make_sequence  # noqa: E402
+from data.render import NeckRenderer, cv2, encode_normals, render_normals  # noqa: E402
+from models.rig import HeadNeckModel  # noqa: E402
+from motion.track import (TrackerConfig, check_normal_map, decode_frame, raw_correlation_argmax,  # noqa: E402
+                          rig_kernel, track_frames)
+
+
+def best_of(run, repeats: int) -> float:
+    """Shortest of ``repeats`` timings (s): the machine is shared, the minimum is the least disturbed."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--threads", default="1,2", help="thread counts to time, comma separated")
+    parser.add_argument("--seeds", type=int, default=4)
+    parser.add_argument("--frames", type=int, default=150)
+    parser.add_argument("--rig", help="rig file from python -m data.assets (default: the built-in rig)")
+    args = parser.parse_args()
+    rig = HeadNeckModel.from_config(args.rig)
+    print(f"rig: {rig.rig.source} ({rig.num_vertices} vertices)")
+    renderer = NeckRenderer(rig)
+    kernel = rig_kernel(rig)
+    sequence = make_sequence(rig, SequenceConfig(frames=300, swallows_per_minute=8.0), seed=0)
+    frames = list(sequence.normals)
+    encoded = [np.rint(encode_normals(n) * 255).astype(np.uint8) for n in frames]
+    batch = 32
+    theta = torch.tensor(head_motion(batch, 30.0, 0, 3.0, 0.3, rig.num_joints), dtype=torch.float32)
+    tau = torch.linspace(-0.02, 0.06, batch)
+    with torch.no_grad():
+        vertices = rig(theta, tau=tau)
+
+    def from_bytes():
+        decoded = []
+        for i, image in enumerate(encoded):
+            normals = decode_frame(image.astype(np.float32) / 255.0, False)
+            check_normal_map(normals, f"frame {i}")
+            decoded.append(normals)
+        track_frames(decoded, kernel)
+
+    for threads in (int(t) for t in str(args.threads).split(",")):
+        torch.set_num_threads(threads)
+        cv2.setNumThreads(threads)
+        print(f"--- {threads} thread(s)")
+        renderer(theta[:4], tau=tau[:4])
+        full = best_of(lambda: renderer(theta, tau=tau), 3)
+        raster = best_of(lambda: render_normals(vertices, renderer.faces, renderer.camera), 3)
+        print(f"renderer 256x256: {batch / full:.0f} frames/s with the rig's forward pass "
+              f"({60 * batch / full:.0f} frames per minute), {batch / raster:.0f} frames/s rasterising posed meshes")
+        track_frames(frames[:10], kernel)
+        seconds = best_of(lambda: track_frames(frames, kernel), 3)
+        print(f"tracker 256x256, band +-{TrackerConfig().band_rows} rows +-{TrackerConfig().band_cols} cols: "
+              f"{len(frames) / seconds:.0f} frames/s (target >= 300)")
+        seconds = best_of(from_bytes, 2)
+        print(f"tracker from 8-bit RGB frames (decode + validation + tracking): {len(frames) / seconds:.0f} frames/s")
+        full_frame = best_of(lambda: [raw_correlation_argmax(n, kernel) for n in frames[:60]], 2)
+        print(f"baseline (raw correlation over the whole frame): {60 / full_frame:.0f} frames/s")
+
+    # ------------------------------------------------------------------ accuracy
+    variants = {"tracker (default)": TrackerConfig(), "no row high-pass": TrackerConfig(highpass_px=0),
+                "smoothing sigma 1 frame": TrackerConfig(smooth_frames=1.0),
+                "smoothing sigma 2 frames": TrackerConfig(smooth_frames=2.0)}
+    errors: dict[str, list] = {name: [] for name in [*variants, "baseline raw arg-max"]}
+    config = SequenceConfig(frames=args.frames, noise=0.05, head_motion_deg=3.0, swallows_per_minute=20.0)
+    for seed in range(args.seeds):
+        seq = make_sequence(rig, config, seed=100 + seed)
+        for name, tracker_config in variants.items():
+            track = track_frames(seq.normals, kernel, tracker_config)
+            errors[name].append(np.hypot(track.x - seq.larynx_px[:, 0], track.y - seq.larynx_px[:, 1]))
+        base = np.array([raw_correlation_argmax(n, kernel) for n in seq.normals])
+        errors["baseline raw arg-max"].append(np.hypot(*(base - seq.larynx_px).T))
+        print(f"  seed {100 + seed}: tau {seq.tau.min():+.3f}..{seq.tau.max():+.3f}, eta {seq.eta:.2f}")
+    print(f"accuracy over {args.seeds} x {args.frames} frames (256x256, noise 0.05, 3 deg head motion), pixels:")
+    for name, values in errors.items():
+        e = np.concatenate(values)
+        print(f"  {name:26s} median {np.median(e):.3f}  p95 {np.percentile(e, 95):.3f}  max {e.max():.2f}")
+
+
+if __name__ == "__main__":
+    main()

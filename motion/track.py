@@ -1,0 +1,709 @@
+"""Larynx tracking in photometric normal maps (the paper's tau_bar(j) = argmax_x [k * N_j](x) - tau0).
+
+A kernel ``k`` holding the generic larynx shape as normals (70x70x3 by
+default) is matched against each normal map ``N_j`` by normalised
+correlation; the match's position, minus the rest position, is the larynx
+slide in pixels, and with a calibration in tau units.
+
+Input (``open_source``): a folder of images (8/16-bit PNG or TIFF, float
+EXR; sorted by name, numbers compared as numbers), a video file (anything
+``cv2.VideoCapture`` reads), or a ``.npy`` stack ``[T,H,W,3]``.
+
+Encoding (owned by ``data.render``): RGB = (n_x, n_y, n_z) of the unit
+surface normal in CAMERA space, x right, y up, z towards the camera, mapped
+from [-1, 1] to [0, 1] as (n + 1) / 2 and scaled to the integer range of
+8/16-bit images and videos.  Float data (EXR, float ``.npy``) is read with
+``float_encoding``: ``raw`` = the normals themselves in [-1, 1], ``encoded`` =
+(n + 1) / 2 in [0, 1], ``auto`` (default) = raw if the first frame has a
+negative value, else encoded.  ``.npy`` stacks of uint8 / uint16 are encoded.
+Background: pixels whose decoded vector is shorter than 0.5 (e.g. grey) or
+longer than 1.5 (black decodes to (-1, -1, -1)); they count as n = 0.
+Validation: every frame must have at least 2 % foreground, and at least 80 %
+of its foreground (checked on every 4th pixel) must decode to vectors of
+norm 1 +- 0.15; otherwise ``InputError`` names the file or frame.
+
+Frame rate: the video's own (``CAP_PROP_FPS``) unless ``fps=`` is given;
+``fps=`` (default 30) for image folders and ``.npy`` stacks.
+
+Positions: (x_px, y_px) = (col, row) in the image convention of
+``data.render`` (pixel centres at integers, rows go DOWN) of the kernel's
+centre point, which for the rig kernel is the rig's larynx point
+(``data.render.larynx_point``, also the ground truth of
+``data.normal_sequences``).  tau_px = y_rest - y_px (positive = up), the rest
+row being the position in frame ``rest_frame`` (default 0);
+tau = tau_px / px_per_tau.
+
+Matching (``LarynxTracker``): both the frames and the kernel are first
+row high-passed (``highpass_rows``: each pixel minus the mean of its row over
+``highpass_px`` = 81 px), which removes the neck's own shading; without it a
+kernel, which always holds some neck around the larynx, lags the larynx by a
+quarter to a third of its rise.  Then ``cv2.matchTemplate``
+TM_CCOEFF_NORMED over the three channels, within a vertical search band of
++-``band_rows`` rows and +-``band_cols`` columns around the predicted
+position (the last accepted one moved on at constant velocity; the whole
+frame on the first frame without ``init_x/init_y``, and again after
+``reacquire_after`` rejected frames); sub-pixel peak by a least-squares 2-D
+quadratic on the 3x3 correlation values around the maximum.  confidence =
+the peak's normalised correlation (clipped to [0, 1]).  A match below
+``min_confidence``, further than ``max_jump_px`` (times the frames since the
+last accepted one) from the prediction, or lying on the band's border (the
+true peak may be beyond it) is rejected: the frame keeps the last accepted
+position and gets confidence 0.  Optional smoothing (``smooth_frames`` > 0):
+a Gaussian of that sigma in frames, each frame weighted by its confidence
+(rejected frames are then filled from their neighbours).  Off by default:
+measured in benchmarks/bench_tracker.py.
+
+Calibration: ``px_per_tau`` (pixels of upward image motion per tau unit) from
+the rig for the default neck view at the capture's ``cm_per_px``
+(:func:`rig_px_per_tau`: the larynx point projected at tau = -delta and
++delta), or given by the user; without one the ``tau`` column is NaN.
+
+CLI (hydra, ``configs/track.yaml``)::
+
+    python -m motion.track input=frames/ out=track.csv [init_x=128 init_y=130] [cm_per_px=0.08]
+        [kernel=rig|frame|kernel.npy] [rig=hack_rig.npz] [px_per_tau=auto|<number>|null] [fps=30]
+
+writes ``frame,time,x_px,y_px,tau_px,tau,confidence`` and a plot (``plot=``, default beside the CSV).
+"""
+from __future__ import annotations
+
+import math
+import re
+import sys
+import time as _time
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+import torch
+
+from data.io import InputError, atomic_path, load_npy, write_csv
+from data.render import (DEFAULT_CM_PER_PX, FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, NeckRenderer, cv2,
+                         decode_normals, larynx_point, neck_camera, read_normal_image)
+
+KERNEL_SIZE = 70                 # the paper's 70x70x3 kernel
+DEFAULT_FPS = 30.0               # image folders and .npy stacks carry no frame rate
+MIN_NORM = 0.5                   # decoded vectors shorter than this (grey) are background
+MAX_NORM = 1.5                   # ... and longer than this (black decodes to (-1,-1,-1), length 1.73)
+UNIT_TOLERANCE = 0.15            # | |n| - 1 | allowed for a foreground pixel to count as a normal
+MIN_UNIT_FRACTION = 0.8          # share of foreground pixels that must be unit normals
+MIN_FOREGROUND = 0.02            # share of the frame that must be foreground
+
+
+# --------------------------------------------------------------------------- decoding and validation
+
+
+def decode_frame(rgb: np.ndarray, is_raw: bool) -> np.ndarray:
+    """Stored values [H,W,3] -> camera-space normals float32 [H,W,3], background 0 (see the module doc)."""
+    rgb = np.asarray(rgb, dtype=np.float32)
+    normals = rgb.copy() if is_raw else decode_normals(rgb)
+    norm2 = cv2.transform(normals * normals, np.ones((1, 3), np.float32))      # |n|^2 per pixel [H,W]
+    normals[(norm2 < MIN_NORM**2) | (norm2 > MAX_NORM**2)] = 0.0
+    return normals
+
+
+def check_normal_map(normals: np.ndarray, label: str) -> None:
+    """Raise InputError naming ``label`` unless ``normals`` [H,W,3] (decoded) looks like a normal map."""
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise InputError(f"{label}: array of shape {normals.shape}, expected an RGB normal map [H,W,3]")
+    sample = normals[::4, ::4].reshape(-1, 3)
+    norms = np.linalg.norm(sample, axis=1)
+    foreground = norms > 0
+    share = foreground.mean()
+    if share < MIN_FOREGROUND:
+        raise InputError(f"{label}: only {100 * share:.1f}% of the pixels hold a normal (the rest decodes to "
+                         f"vectors shorter than {MIN_NORM} or longer than {MAX_NORM}: background); expected a "
+                         f"normal map with RGB = (n + 1) / 2")
+    unit = np.abs(norms[foreground] - 1.0) < UNIT_TOLERANCE
+    if unit.mean() < MIN_UNIT_FRACTION:
+        raise InputError(
+            f"{label}: not a normal map: only {100 * unit.mean():.0f}% of the foreground pixels decode to unit "
+            f"vectors (median norm {np.median(norms[foreground]):.2f}); expected RGB = (n + 1) / 2 of unit normals "
+            f"(x right, y up, z towards the camera), or raw normals in [-1, 1] for float data (float_encoding)")
+
+
+# --------------------------------------------------------------------------- sources
+
+
+def _natural_key(path: Path) -> list:
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", path.name)]
+
+
+@dataclass
+class NormalMapSource:
+    """Frames of normal maps from a folder, a video or a .npy stack.
+
+    ``frames()`` yields (index, label, normals float32 [H,W,3]) decoded and validated; ``label`` names the
+    file or frame for error messages.  ``count`` is the number of frames (a video's is its header's).
+    """
+
+    path: Path
+    kind: str
+    fps: float
+    count: int
+    float_encoding: str = "auto"
+    files: list[Path] = field(default_factory=list)
+    _raw: bool | None = None
+
+    def _is_raw(self, values: np.ndarray, is_float: bool) -> bool:
+        if not is_float:
+            return False
+        if self._raw is None:
+            self._raw = bool(values.min() < 0) if self.float_encoding == "auto" else self.float_encoding == "raw"
+        return self._raw
+
+    def _decoded(self, values: np.ndarray, is_float: bool, label: str, shape: list) -> np.ndarray:
+        normals = decode_frame(values, self._is_raw(values, is_float))
+        if not shape:
+            shape.append(normals.shape)
+        elif normals.shape != shape[0]:
+            raise InputError(f"{label}: frame of size {normals.shape[1]}x{normals.shape[0]}, expected "
+                             f"{shape[0][1]}x{shape[0][0]} as the first frame")
+        check_normal_map(normals, label)
+        return normals
+
+    def frames(self) -> Iterator[tuple[int, str, np.ndarray]]:
+        shape: list = []
+        if self.kind == "folder":
+            for i, file in enumerate(self.files):
+                values, is_float = read_normal_image(file)
+                yield i, str(file), self._decoded(values, is_float, str(file), shape)
+        elif self.kind == "npy":
+            stack = np.load(self.path, mmap_mode="r", allow_pickle=False)
+            scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(stack.dtype)
+            for i in range(len(stack)):
+                label = f"{self.path}: frame {i}"
+                values = np.asarray(stack[i], dtype=np.float32)
+                if not np.isfinite(values).all():
+                    raise InputError(f"{label}: non-finite values; expected a normal map")
+                yield i, label, self._decoded(values / scale if scale else values, scale is None, label, shape)
+        else:
+            capture = cv2.VideoCapture(str(self.path))
+            try:
+                i = 0
+                while True:
+                    ok, image = capture.read()
+                    if not ok:
+                        break
+                    label = f"{self.path}: frame {i}"
+                    if image.ndim != 3 or image.shape[2] < 3:
+                        raise InputError(f"{label}: {image.shape}, expected 3-channel colour frames")
+                    top = 65535.0 if image.dtype == np.uint16 else 255.0
+                    yield i, label, self._decoded(image[..., 2::-1].astype(np.float32) / top, False, label, shape)
+                    i += 1
+            finally:
+                capture.release()
+            if i == 0:
+                raise InputError(f"{self.path}: the video has no readable frames")
+
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
+
+
+def open_source(path: str | Path, fps: float | None = None, float_encoding: str = "auto") -> NormalMapSource:
+    """A folder of images, a video file or a .npy stack [T,H,W,3] (see the module doc for the encoding)."""
+    path = Path(path)
+    if float_encoding not in ("auto", "raw", "encoded"):
+        raise InputError(f"float_encoding={float_encoding}: expected auto, raw or encoded")
+    if fps is not None and not fps > 0:
+        raise InputError(f"fps={fps}: expected a positive frame rate")
+    if not path.exists():
+        raise InputError(f"{path}: not found; expected a folder of normal-map images, a video or a .npy stack")
+    if path.is_dir():
+        suffixes = INTEGER_IMAGE_SUFFIXES + FLOAT_IMAGE_SUFFIXES
+        files = sorted((p for p in path.iterdir() if p.suffix.lower() in suffixes and not p.name.startswith(".")),
+                       key=_natural_key)
+        if not files:
+            raise InputError(f"{path}: no normal-map images ({', '.join(suffixes)}) in the folder")
+        return NormalMapSource(path, "folder", float(fps or DEFAULT_FPS), len(files), float_encoding, files)
+    if path.suffix.lower() == ".npy":
+        header = np.load(path, mmap_mode="r", allow_pickle=False) if path.stat().st_size else None
+        if header is None or header.ndim != 4 or header.shape[-1] != 3:
+            shape = None if header is None else header.shape
+            raise InputError(f"{path}: array of shape {shape}, expected a normal-map stack [T,H,W,3]")
+        if not (np.issubdtype(header.dtype, np.floating) or header.dtype in (np.uint8, np.uint16)):
+            raise InputError(f"{path}: dtype {header.dtype}, expected float, uint8 or uint16")
+        return NormalMapSource(path, "npy", float(fps or DEFAULT_FPS), len(header), float_encoding)
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        capture = cv2.VideoCapture(str(path))
+        try:
+            if not capture.isOpened():
+                raise InputError(f"{path}: OpenCV cannot open this video")
+            video_fps = capture.get(cv2.CAP_PROP_FPS)
+            count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        finally:
+            capture.release()
+        rate = fps or (video_fps if video_fps and video_fps > 0 else None)
+        if rate is None:
+            raise InputError(f"{path}: the video reports no frame rate; give fps=...")
+        return NormalMapSource(path, "video", float(rate), count, float_encoding)
+    raise InputError(f"{path}: unsupported input '{path.suffix}'; expected a folder of images, a video "
+                     f"({', '.join(VIDEO_SUFFIXES)}) or a .npy stack")
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+@dataclass
+class LarynxKernel:
+    """normals [h,w,3] float32 camera-space normals of the larynx and its surroundings; centre (x, y) the
+    kernel-pixel coordinates of the larynx point; cm_per_px its scale if known; source a description.
+
+    rows [h,W,3] (optional): the full image rows the kernel was cut from, its columns starting at
+    ``rows_offset``; the row high-pass of the matching then sees the same neighbourhood as in the frames
+    (without them the kernel's borders are reflected).
+    """
+
+    normals: np.ndarray
+    centre: tuple[float, float]
+    cm_per_px: float | None = None
+    source: str = ""
+    rows: np.ndarray | None = None
+    rows_offset: int = 0
+
+    def __post_init__(self) -> None:
+        self.normals = np.ascontiguousarray(self.normals, dtype=np.float32)
+        self.centre = (float(self.centre[0]), float(self.centre[1]))
+
+    def template(self, highpass_px: int) -> np.ndarray:
+        """The kernel as matched: row high-passed (``highpass_rows``) over its rows' context."""
+        w = self.size[0]
+        if self.rows is None:
+            return np.ascontiguousarray(highpass_rows(self.normals, highpass_px))
+        strip = highpass_rows(self.rows, highpass_px)
+        return np.ascontiguousarray(strip[:, self.rows_offset:self.rows_offset + w])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height)."""
+        return self.normals.shape[1], self.normals.shape[0]
+
+
+def rig_kernel(rig, cm_per_px: float = DEFAULT_CM_PER_PX, size: int = KERNEL_SIZE, margin: int = 128) -> LarynxKernel:
+    """The generic larynx kernel: the rig at rest (theta 0, psi 0, tau 0, eta 1) in the default neck view at
+    ``cm_per_px``, ``size`` px square, centred on the larynx point (its centre is the middle pixel); its rows
+    are rendered ``margin`` px wider on each side for the row high-pass."""
+    camera = neck_camera(rig, size + 2 * margin, cm_per_px, height=size)
+    render = NeckRenderer(rig, camera)(rig.neutral(1))
+    rows = render.normals[0].numpy()
+    if not bool(render.mask[0, :, margin:margin + size].all()):
+        raise InputError(f"the {size}x{size} px kernel at {cm_per_px} cm/px reaches beyond the neck; "
+                         f"give a smaller kernel_size or a finer cm_per_px")
+    c = (size - 1) / 2.0
+    return LarynxKernel(rows[:, margin:margin + size], (c, c), float(cm_per_px), f"rig at {cm_per_px:g} cm/px",
+                        rows, margin)
+
+
+def kernel_from_file(path: str | Path, cm_per_px: float | None = None, float_encoding: str = "auto") -> LarynxKernel:
+    """A kernel image (.npy [h,w,3], .png, .exr; the frames' encoding), centred on its middle pixel."""
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        values = load_npy(path, 3, "a kernel [h,w,3]")
+        if values.shape[2] != 3:
+            raise InputError(f"{path}: array of shape {values.shape}, expected a kernel [h,w,3]")
+        is_float = np.issubdtype(values.dtype, np.floating)
+        values = values.astype(np.float32) / (1.0 if is_float else float(np.iinfo(values.dtype).max))
+    else:
+        values, is_float = read_normal_image(path)
+    raw = is_float and (float_encoding == "raw" or (float_encoding == "auto" and values.min() < 0))
+    normals = decode_frame(values, raw)
+    check_normal_map(normals, str(path))
+    h, w = normals.shape[:2]
+    return LarynxKernel(normals, ((w - 1) / 2.0, (h - 1) / 2.0), cm_per_px, str(path))
+
+
+def kernel_from_frame(normals: np.ndarray, x: float, y: float, size: int = KERNEL_SIZE, label: str = "frame 0",
+                      cm_per_px: float | None = None) -> LarynxKernel:
+    """The ``size`` px square of a frame [H,W,3] around (x, y); its centre is (x, y) in kernel coordinates."""
+    h, w = normals.shape[:2]
+    if size > min(h, w):
+        raise InputError(f"{label}: kernel of {size} px does not fit a {w}x{h} frame")
+    if not (0 <= x <= w - 1 and 0 <= y <= h - 1):
+        raise InputError(f"{label}: init position ({x:g}, {y:g}) lies outside the {w}x{h} frame")
+    x0 = int(np.clip(round(x - (size - 1) / 2.0), 0, w - size))
+    y0 = int(np.clip(round(y - (size - 1) / 2.0), 0, h - size))
+    return LarynxKernel(normals[y0:y0 + size, x0:x0 + size], (x - x0, y - y0), cm_per_px,
+                        f"{label} at ({x:g}, {y:g})", np.array(normals[y0:y0 + size]), x0)
+
+
+def rescale_kernel(kernel: LarynxKernel, cm_per_px: float) -> LarynxKernel:
+    """The kernel resampled to ``cm_per_px`` (a no-op when its own scale is unknown or equal)."""
+    if kernel.cm_per_px is None or math.isclose(kernel.cm_per_px, cm_per_px, rel_tol=1e-6):
+        return kernel
+    factor = kernel.cm_per_px / cm_per_px
+    w, h = kernel.size
+    size = (max(3, round(w * factor)), max(3, round(h * factor)))
+
+    def resample(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        out = cv2.resize(image, shape, interpolation=cv2.INTER_AREA if factor < 1 else cv2.INTER_LINEAR)
+        norms = np.linalg.norm(out, axis=-1, keepdims=True)
+        return np.where(norms > MIN_NORM, out / np.maximum(norms, 1e-6), 0.0)
+
+    fx, fy = size[0] / w, size[1] / h  # continuous coordinates: x' = (x + 0.5) * f - 0.5
+    centre = ((kernel.centre[0] + 0.5) * fx - 0.5, (kernel.centre[1] + 0.5) * fy - 0.5)
+    rows, offset = None, 0
+    if kernel.rows is not None:
+        rows = resample(kernel.rows, (max(size[0], round(kernel.rows.shape[1] * fx)), size[1]))
+        offset = int(np.clip(round((kernel.rows_offset + 0.5) * fx - 0.5), 0, rows.shape[1] - size[0]))
+    return LarynxKernel(resample(kernel.normals, size), centre, cm_per_px,
+                        f"{kernel.source} rescaled to {cm_per_px:g} cm/px", rows, offset)
+
+
+def rig_px_per_tau(rig, cm_per_px: float = DEFAULT_CM_PER_PX, delta: float = 0.02, perspective: bool = False) -> float:
+    """Pixels of upward image motion of the larynx point per tau unit, in the default neck view at rest."""
+    camera = neck_camera(rig, 64, cm_per_px, perspective)
+    with torch.no_grad():
+        tau = torch.tensor([-delta, delta])
+        pixels, _ = camera.project(larynx_point(rig, rig(rig.neutral(2), tau=tau), tau))
+    return float(pixels[0, 1] - pixels[1, 1]) / (2 * delta)
+
+
+# --------------------------------------------------------------------------- matching
+
+
+def highpass_rows(normals: np.ndarray, width: int) -> np.ndarray:
+    """Normals [H,W,3] minus their running mean along each row over ``width`` px (a horizontal box filter,
+    borders reflected); ``width`` 0 returns the input.
+
+    The neck's own shading varies slowly across the neck and little along it; a kernel holding it
+    (any kernel cut around the larynx does) stays partly anchored to it while the larynx slides, so
+    the match lags: on noise-free renders of the built-in rig at 0.08 cm/px it is 3.1 px behind at
+    tau = 0.03 and 8.7 px at 0.065 (a quarter to a third of the rise).  Removing the row mean over a
+    width larger than the larynx keeps the larynx and drops that shading: within 0.3 px there.
+    """
+    if width <= 1:
+        return normals
+    return normals - cv2.blur(normals, (int(width), 1), borderType=cv2.BORDER_REFLECT)
+
+
+# Least squares fit of f = a + b x + c y + d x^2 + e x y + g y^2 to the 3x3 values around a maximum.
+_OFFSETS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dtype=np.float64)
+_QUADRATIC_FIT = np.linalg.pinv(np.stack([np.ones(9), _OFFSETS[:, 0], _OFFSETS[:, 1], _OFFSETS[:, 0] ** 2,
+                                          _OFFSETS[:, 0] * _OFFSETS[:, 1], _OFFSETS[:, 1] ** 2], axis=1))
+
+
+def subpixel_peak(scores: np.ndarray, col: int, row: int) -> tuple[float, float]:
+    """Sub-pixel (x, y) of the maximum at (col, row) of a score map: a 2-D quadratic through its 3x3
+    neighbourhood (1-D parabolas along an axis where the fit is not a maximum or at the border)."""
+    h, w = scores.shape
+    if 0 < col < w - 1 and 0 < row < h - 1:
+        a, b, c, d, e, g = _QUADRATIC_FIT @ scores[row - 1:row + 2, col - 1:col + 2].reshape(-1).astype(np.float64)
+        det = 4 * d * g - e * e
+        if d < 0 and det > 0:
+            dx = (-2 * g * b + e * c) / det
+            dy = (-2 * d * c + e * b) / det
+            if abs(dx) <= 1 and abs(dy) <= 1:
+                return col + dx, row + dy
+
+    def parabola(left: float, centre: float, right: float) -> float:
+        curvature = left - 2 * centre + right
+        return float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5)) if curvature < 0 else 0.0
+
+    dx = parabola(scores[row, col - 1], scores[row, col], scores[row, col + 1]) if 0 < col < w - 1 else 0.0
+    dy = parabola(scores[row - 1, col], scores[row, col], scores[row + 1, col]) if 0 < row < h - 1 else 0.0
+    return col + dx, row + dy
+
+
+@dataclass
+class TrackerConfig:
+    """Matching settings (mirrored by ``configs/track.yaml: tracker``); pixels and frames."""
+
+    band_rows: int = 24          # search +- rows around the last position (a swallow moves < 8 px/frame at 30 fps)
+    band_cols: int = 8           # search +- columns
+    highpass_px: int = 81        # row high-pass box width (0 = off), frames and kernel alike; > the larynx
+    max_jump_px: float = 10.0    # largest accepted distance from the prediction, per frame since the last match
+    min_confidence: float = 0.3  # lowest accepted peak NCC
+    reacquire_after: int = 10    # consecutive rejections before searching the whole frame again
+    subpixel: bool = True
+    smooth_frames: float = 0.0   # sigma (frames) of the confidence-weighted Gaussian smoothing; 0 = off
+
+
+@dataclass
+class Match:
+    """One frame's result: (x, y) pixels, peak NCC, accepted or held."""
+
+    x: float
+    y: float
+    score: float
+    accepted: bool
+
+
+class LarynxTracker:
+    """Frame-by-frame matcher of a LarynxKernel (see the module doc).  ``update(normals [H,W,3]) -> Match``."""
+
+    def __init__(self, kernel: LarynxKernel, config: TrackerConfig | None = None,
+                 init: tuple[float, float] | None = None):
+        self.kernel = kernel
+        self.config = config or TrackerConfig()
+        self.template = kernel.template(self.config.highpass_px)
+        self.last = init              # last accepted (x, y)
+        self.velocity = (0.0, 0.0)    # px per frame between the last two accepted positions
+        self.missed = 0               # frames since the last accepted one
+
+    def search(self, normals: np.ndarray, around: tuple[float, float] | None) -> tuple[float, float, float, bool]:
+        """Best (x, y, score, inside) within the band around ``around`` (the whole frame if None); ``inside``
+        is False when the best score lies on the band's border (the true peak may lie beyond it)."""
+        kw, kh = self.kernel.size
+        h, w = normals.shape[:2]
+        cx, cy = self.kernel.centre
+        if around is None:
+            x0, y0, x1, y1 = 0, 0, w - kw, h - kh
+        else:
+            # Top-left corners of the kernel whose centre lies within the band.
+            tx, ty = int(round(around[0] - cx)), int(round(around[1] - cy))
+            x0, x1 = max(0, tx - self.config.band_cols), min(w - kw, tx + self.config.band_cols)
+            y0, y1 = max(0, ty - self.config.band_rows), min(h - kh, ty + self.config.band_rows)
+            if x1 < x0 or y1 < y0:
+                return float("nan"), float("nan"), -1.0, False
+        # The high-pass needs whole rows; the window is then cut from them.
+        strip = highpass_rows(normals[y0:y1 + kh], self.config.highpass_px)
+        window = strip[:, x0:x1 + kw]
+        scores = cv2.matchTemplate(window, self.template, cv2.TM_CCOEFF_NORMED)
+        _, peak, _, (col, row) = cv2.minMaxLoc(scores)
+        rows, cols = scores.shape
+        inside = (0 < row < rows - 1 or rows == 1) and (0 < col < cols - 1 or cols == 1)
+        if self.config.subpixel:
+            px, py = subpixel_peak(scores, col, row)
+        else:
+            px, py = float(col), float(row)
+        return x0 + px + cx, y0 + py + cy, float(peak), inside
+
+    def prediction(self) -> tuple[float, float] | None:
+        """Where the larynx should be in the next frame: the last accepted position moved on at the velocity
+        between the last two accepted ones (constant velocity)."""
+        if self.last is None:
+            return None
+        steps = self.missed + 1
+        return self.last[0] + self.velocity[0] * steps, self.last[1] + self.velocity[1] * steps
+
+    def update(self, normals: np.ndarray) -> Match:
+        cfg = self.config
+        reacquire = self.last is None or self.missed >= cfg.reacquire_after
+        predicted = self.prediction()
+        x, y, score, inside = self.search(normals, None if reacquire else predicted)
+        ok = inside and score >= cfg.min_confidence
+        if ok and not reacquire:
+            ok = math.hypot(x - predicted[0], y - predicted[1]) <= cfg.max_jump_px * (self.missed + 1)
+        if ok:
+            if self.last is not None and not reacquire:
+                steps = self.missed + 1
+                self.velocity = ((x - self.last[0]) / steps, (y - self.last[1]) / steps)
+            else:
+                self.velocity = (0.0, 0.0)
+            self.last, self.missed = (x, y), 0
+            return Match(x, y, score, True)
+        self.missed += 1
+        held = self.last if self.last is not None else (float("nan"), float("nan"))
+        return Match(held[0], held[1], score, False)
+
+
+@dataclass
+class Track:
+    """Per-frame results: x, y [T] pixels, confidence [T] (0 where rejected), accepted [T] bool."""
+
+    x: np.ndarray
+    y: np.ndarray
+    confidence: np.ndarray
+    accepted: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+
+def smooth_track(track: Track, sigma_frames: float) -> Track:
+    """Confidence-weighted Gaussian smoothing of x and y (normalised convolution); rejected frames
+    (confidence 0) take their neighbours' values."""
+    if sigma_frames <= 0:
+        return track
+    radius = int(math.ceil(3 * sigma_frames))
+    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma_frames) ** 2)
+    weights = np.where(np.isfinite(track.x), track.confidence, 0.0)
+
+    def smooth(values: np.ndarray) -> np.ndarray:
+        num = np.convolve(np.nan_to_num(values) * weights, kernel, "same")
+        den = np.convolve(weights, kernel, "same")
+        return np.where(den > 1e-9, num / np.maximum(den, 1e-9), values)
+
+    return Track(smooth(track.x), smooth(track.y), track.confidence, track.accepted)
+
+
+def track_frames(frames: Iterable[np.ndarray], kernel: LarynxKernel, config: TrackerConfig | None = None,
+                 init: tuple[float, float] | None = None, progress: bool = False, total: int | None = None) -> Track:
+    """Track the kernel through decoded normal maps [H,W,3] (float32); smoothing per ``config``."""
+    tracker = LarynxTracker(kernel, config, init)
+    matches = []
+    iterator = frames
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(frames, total=total, unit="frame", desc="tracking")
+    for normals in iterator:
+        matches.append(tracker.update(normals))
+    if not matches:
+        raise InputError("no frames to track")
+    track = Track(np.array([m.x for m in matches]), np.array([m.y for m in matches]),
+                  np.array([np.clip(m.score, 0.0, 1.0) if m.accepted else 0.0 for m in matches]),
+                  np.array([m.accepted for m in matches]))
+    return smooth_track(track, tracker.config.smooth_frames)
+
+
+def raw_correlation_argmax(normals: np.ndarray, kernel: LarynxKernel) -> tuple[float, float]:
+    """The plain estimate: integer arg-max over the whole frame of the raw correlation k * N (TM_CCORR)."""
+    scores = cv2.matchTemplate(np.asarray(normals, np.float32), kernel.normals, cv2.TM_CCORR)
+    _, _, _, (col, row) = cv2.minMaxLoc(scores)
+    return col + kernel.centre[0], row + kernel.centre[1]
+
+
+def track_columns(track: Track, fps: float, rest_frame: int = 0, px_per_tau: float | None = None) -> dict:
+    """The CSV columns ``frame,time,x_px,y_px,tau_px,tau,confidence`` (tau NaN without calibration)."""
+    if not 0 <= rest_frame < len(track):
+        raise InputError(f"rest_frame={rest_frame}: expected a frame index in [0, {len(track) - 1}]")
+    if not np.isfinite(track.y[rest_frame]):
+        raise InputError(f"rest_frame={rest_frame}: the larynx was not found in that frame; choose another")
+    tau_px = track.y[rest_frame] - track.y
+    tau = tau_px / px_per_tau if px_per_tau else np.full(len(track), np.nan)
+    return {"frame": np.arange(len(track)), "time": np.arange(len(track)) / fps, "x_px": track.x, "y_px": track.y,
+            "tau_px": tau_px, "tau": tau, "confidence": track.confidence}
+
+
+def plot_track(path: str | Path, columns: dict, title: str = "") -> None:
+    """y (px) / tau over time and the confidence, as a PNG (atomic)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    time = columns["time"]
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 5), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    top.plot(time, columns["tau_px"], color="tab:blue", lw=1.2)
+    top.set_ylabel("larynx rise tau_px (px, + = up)")
+    calibrated = np.isfinite(columns["tau"]).any()
+    if calibrated:
+        valid = np.isfinite(columns["tau"]) & (np.abs(columns["tau_px"]) > 1e-9)
+        scale = float(np.median(columns["tau"][valid] / columns["tau_px"][valid])) if valid.any() else None
+        if scale:
+            right = top.secondary_yaxis("right", functions=(lambda p: p * scale, lambda t: t / scale))
+            right.set_ylabel("tau (UV units)")
+    rejected = columns["confidence"] <= 0
+    if rejected.any():
+        top.plot(time[rejected], columns["tau_px"][rejected], "x", color="tab:red", ms=4, label="rejected (held)")
+        top.legend(loc="upper right")
+    top.set_title(title)
+    top.grid(alpha=0.3)
+    bottom.plot(time, columns["confidence"], color="tab:green", lw=1.0)
+    bottom.set_ylim(0, 1.02)
+    bottom.set_ylabel("confidence")
+    bottom.set_xlabel("time (s)")
+    bottom.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def tracker_config_from(cfg) -> TrackerConfig:
+    values = dict(cfg.tracker)
+    known = {f.name for f in fields(TrackerConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise InputError(f"configs/track.yaml: unknown tracker.* keys {unknown}; known: {sorted(known)}")
+    return TrackerConfig(**values)
+
+
+def build_kernel(cfg, first_frame: np.ndarray, first_label: str, rig_loader) -> LarynxKernel:
+    """The kernel the config asks for (``kernel=rig|frame|<file>``), at the capture's scale."""
+    size = int(cfg.kernel_size)
+    cm_per_px = float(cfg.cm_per_px) if cfg.cm_per_px is not None else None
+    if cfg.kernel == "rig":
+        kernel = rig_kernel(rig_loader(), cm_per_px or DEFAULT_CM_PER_PX, size)
+    elif cfg.kernel == "frame":
+        if cfg.init_x is None or cfg.init_y is None:
+            raise InputError("kernel=frame cuts the kernel from the first frame: give init_x=... init_y=... "
+                             "(the larynx's pixel position in it)")
+        return kernel_from_frame(first_frame, float(cfg.init_x), float(cfg.init_y), size, first_label, cm_per_px)
+    else:
+        own = float(cfg.kernel_cm_per_px) if cfg.kernel_cm_per_px is not None else None
+        kernel = kernel_from_file(cfg.kernel, own, str(cfg.float_encoding))
+    return rescale_kernel(kernel, cm_per_px) if cm_per_px else kernel
+
+
+def run(cfg) -> dict:
+    """The CLI's work for a composed ``configs/track.yaml`` (tests call this in-process); returns the columns."""
+    if not cfg.input:
+        raise InputError("input=... is required: a folder of normal-map images, a video or a .npy stack")
+    if not cfg.out:
+        raise InputError("out=track.csv is required")
+    torch.set_num_threads(int(cfg.threads))
+    cv2.setNumThreads(int(cfg.threads))
+    started = _time.perf_counter()
+    source = open_source(cfg.input, cfg.fps, str(cfg.float_encoding))
+    rig_cache: list = []
+
+    def rig_loader():
+        if not rig_cache:
+            from models.rig import HeadNeckModel
+
+            rig_cache.append(HeadNeckModel.from_config(cfg.rig))
+        return rig_cache[0]
+
+    frames = source.frames()
+    _, first_label, first = next(frames)
+    kernel = build_kernel(cfg, first, first_label, rig_loader)
+    h, w = first.shape[:2]
+    if kernel.size[0] > w or kernel.size[1] > h:
+        raise InputError(f"{first_label}: the {kernel.size[0]}x{kernel.size[1]} kernel is larger than the "
+                         f"{w}x{h} frames; give cm_per_px= (the capture's scale) or a smaller kernel_size")
+    init = None
+    if cfg.init_x is not None and cfg.init_y is not None:
+        init = (float(cfg.init_x), float(cfg.init_y))
+
+    def all_frames():
+        yield first
+        for _, _, normals in frames:
+            yield normals
+
+    track = track_frames(all_frames(), kernel, tracker_config_from(cfg), init, progress=bool(cfg.progress),
+                         total=source.count)
+    px_per_tau = cfg.px_per_tau
+    if px_per_tau == "auto":
+        px_per_tau = (rig_px_per_tau(rig_loader(), float(cfg.cm_per_px or DEFAULT_CM_PER_PX))
+                      if cfg.kernel == "rig" else None)
+    elif px_per_tau is not None:
+        try:
+            px_per_tau = float(px_per_tau)
+        except ValueError:
+            raise InputError(f"px_per_tau={px_per_tau}: expected auto, a number or null") from None
+    columns = track_columns(track, source.fps, int(cfg.rest_frame), px_per_tau)
+    write_csv(cfg.out, columns, float_format="%.9g")  # time of an hour-long take to 1e-5 s
+    plot = cfg.plot if cfg.plot != "auto" else str(Path(cfg.out).with_suffix(".png"))
+    if plot:
+        plot_track(plot, columns, f"{Path(str(cfg.input)).name}: kernel {kernel.source}")
+    elapsed = _time.perf_counter() - started
+    rejected = int((~track.accepted).sum())
+    calibration = f"{px_per_tau:.1f} px per tau unit" if px_per_tau else "no calibration (tau column NaN)"
+    print(f"tracked {len(track)} frames at {source.fps:g} fps in {elapsed:.1f} s; {rejected} rejected; "
+          f"median confidence {np.median(track.confidence):.3f}; {calibration}; wrote {cfg.out}"
+          + (f" and {plot}" if plot else ""))
+    return columns
+
+
+def _main() -> None:
+    import hydra
+
+    @hydra.main(version_base=None, config_path="../configs", config_name="track")
+    def main(cfg) -> None:
+        try:
+            run(cfg)
+        except InputError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+
+    main()
+
+
+if __name__ == "__main__":
+    _main()

@@ -1,0 +1,282 @@
+"""Expression -> larynx transformer: streaming decoder, synthetic data, training task, inference CLI."""
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from data.expressions import EXPRESSION_NAMES
+from data.io import InputError, read_tau_track, write_csv
+from data.pairs import save_pair
+from data.synthetic_larynx import (HELDOUT_SUBJECT_START, SWALLOW_PRESS_THRESHOLD, generate_expressions,
+                                   larynx_response, make_dataset, make_sequence, split_subjects, subject_params)
+from data.synthetic_tau import SWALLOW_LANDMARK_PHASES
+from models.checkpoint import save_checkpoint
+from models.larynx_transformer import build_model, predict_tau
+
+REPO = Path(__file__).resolve().parents[1]
+K = {name: k for k, name in enumerate(EXPRESSION_NAMES)}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny tensors: a second thread only adds stalls on a shared CPU (the trainer config uses 1 too)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+TINY_MODEL = {"d_model": 16, "n_heads": 2, "n_layers": 2, "d_ff": 32, "window": 16, "cross_window": 1, "period": 5,
+              "expression_layers": 1, "expression_kernel": 3, "dropout": 0.0, "use_eta": False}
+
+
+def random_model(**overrides):
+    """A tiny model with non-trivial random weights (the default init keeps the output near tau_mean)."""
+    torch.manual_seed(0)
+    model = build_model({**TINY_MODEL, "tau_mean": 0.01, "tau_scale": 0.02, **overrides}).eval()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.2 * torch.randn_like(p))
+    return model
+
+
+# --------------------------------------------------------------------------- streaming decoder
+
+
+@pytest.mark.parametrize("cross_window", [1, 3])
+def test_cached_decoding_matches_full_recomputation(cross_window):
+    model = random_model(cross_window=cross_window, subjects=["anna", "ben"], use_eta=True)
+    psi = torch.rand(2, 70, 55, generator=torch.Generator().manual_seed(1))  # 70 frames: the 16-frame window wraps
+    subject, eta = torch.tensor([0, 2]), torch.tensor([1.0, 1.15])
+    reference = model.generate_uncached(psi, subject, eta) / model.tau_scale
+    assert reference.std() > 0.1  # the comparison is not between constants
+    cached = model.generate(psi, subject, eta, chunk=9) / model.tau_scale  # chunk boundaries inside
+    stream = model.stream(2, subject, eta)
+    stepped = torch.stack([stream.step(psi[:, t]) for t in range(70)], dim=1) / model.tau_scale
+    assert (cached - reference).abs().max() < 1e-5
+    assert (stepped - reference).abs().max() < 1e-5
+
+
+def test_forward_is_causal():
+    model = random_model(cross_window=2)
+    psi = torch.rand(1, 50, 55, generator=torch.Generator().manual_seed(2))
+    previous = 0.02 * torch.randn(1, 50, generator=torch.Generator().manual_seed(3))
+    changed_psi, changed_previous = psi.clone(), previous.clone()
+    changed_psi[:, 30] += 0.5
+    changed_previous[:, 40] += 0.05
+    base = model(psi, previous)
+    assert torch.equal(model(changed_psi, previous)[:, :30], base[:, :30])
+    assert (model(changed_psi, previous)[:, 30] - base[:, 30]).abs().item() > 1e-4
+    assert torch.equal(model(psi, changed_previous)[:, :40], base[:, :40])
+
+
+@pytest.fixture(scope="module")
+def long_stream():
+    """10,000 frames through step(); the last 300 timed alternately with a stream at frames 200-500.
+
+    Alternating the two streams step by step exposes both to the same load from other processes.
+    """
+    model = random_model()
+    psi = torch.rand(10_000, 55, generator=torch.Generator().manual_seed(4))
+    far, near = model.stream(1), model.stream(1)
+    tau = [far.step(psi[t]) for t in range(9_700)]
+    sizes = [far.cache_elements()]
+    for t in range(200):
+        near.step(psi[t])
+    near_seconds, far_seconds = [], []
+    for t in range(300):
+        start = time.perf_counter()
+        near.step(psi[200 + t])
+        middle = time.perf_counter()
+        tau.append(far.step(psi[9_700 + t]))
+        far_seconds.append(time.perf_counter() - middle)
+        near_seconds.append(middle - start)
+    sizes.append(far.cache_elements())
+    return model, psi, torch.cat(tau), np.array(near_seconds), np.array(far_seconds), sizes
+
+
+def test_ten_thousand_frames_bounded_memory(long_stream):
+    model, psi, tau, _, _, sizes = long_stream
+    assert tau.shape == (10_000,) and torch.isfinite(tau).all()
+    assert sizes[0] == sizes[1]  # the cache does not grow with the position
+    whole = model.generate(psi[None])[0]  # the whole-sequence API agrees over many cache wrap-arounds
+    assert ((whole - tau) / model.tau_scale).abs().max() < 1e-5
+
+
+def test_per_frame_cost_is_flat(long_stream):
+    near_seconds, far_seconds = long_stream[3], long_stream[4]
+    ratio = np.median(far_seconds) / np.median(near_seconds)  # frames 9,700-10,000 vs 200-500
+    assert ratio < 1.5, (np.median(near_seconds), np.median(far_seconds))
+
+
+def test_predict_tau_and_subjects():
+    model = random_model(subjects=["anna", "ben"])
+    psi = np.random.default_rng(5).uniform(0, 1, (40, 55)).astype(np.float32)
+    tau = predict_tau(model, psi, "ben")
+    expected = model.generate_uncached(torch.from_numpy(psi)[None], torch.tensor([2]))[0].numpy()
+    np.testing.assert_allclose(tau, expected, atol=1e-7)
+    assert np.abs(predict_tau(model, psi) - tau).max() > 1e-4  # the average style differs from ben's
+    with pytest.raises(InputError, match="subject 'carl' was not in the training data \\(known: anna, ben\\)"):
+        predict_tau(model, psi, "carl")
+    with pytest.raises(InputError, match=r"psi of shape \(40, 54\), expected \[T,55\]"):
+        predict_tau(model, psi[:, :54])
+
+
+# --------------------------------------------------------------------------- synthetic data
+
+
+def test_synthetic_data_deterministic_and_subjects_disjoint():
+    train_ids, heldout_ids = split_subjects(5, 3)
+    assert not set(train_ids) & set(heldout_ids) and min(heldout_ids) >= HELDOUT_SUBJECT_START
+    a, b = make_sequence(3, 1, 300, 30.0, seed=7), make_sequence(3, 1, 300, 30.0, seed=7)
+    np.testing.assert_array_equal(a.psi, b.psi)
+    np.testing.assert_array_equal(a.tau, b.tau)
+    c = make_sequence(3, 1, 300, 30.0, seed=8)
+    assert np.abs(c.tau - a.tau).max() > 1e-3
+    assert a.psi.shape == (300, 55) and a.psi.min() >= 0 and a.psi.max() <= 1
+    dataset = make_dataset(heldout_ids, 2, 10.0, 30.0, seed=7)
+    assert len(dataset) == 6 and {s.subject for s in dataset} == {f"s{i}" for i in heldout_ids}
+
+
+def test_larynx_process_is_causal_and_subject_dependent():
+    params = subject_params(2, seed=0)
+    psi = generate_expressions(600, 30.0, params, np.random.default_rng(0))
+    tau = larynx_response(psi, 30.0, params)
+    for t in (50, 311, 599):
+        np.testing.assert_array_equal(larynx_response(psi[:t], 30.0, params), tau[:t])
+    other = larynx_response(psi, 30.0, subject_params(3, seed=0))
+    assert np.abs(other - tau).max() > 1e-3
+
+
+def test_swallow_pattern_raises_tau():
+    """A lip press with the jaw closed starts a swallow: peak at 40% of its duration, amplitude set by the chin."""
+    fps = 30.0
+    params = dataclasses.replace(subject_params(0, seed=0), rest=0.0, effort_gain=0.0)  # the swallow path alone
+    psi = np.zeros((120, 55), np.float32)
+    press = np.clip((np.arange(120) - 30) / 10, 0, 1) * 0.8  # ramps 0 -> 0.8 from frame 30 to 40
+    psi[:, K["mouthPress_L"]] = psi[:, K["mouthPress_R"]] = press
+    psi[:, K["mouthShrugLower"]] = 0.5
+    onset = int(np.argmax(press >= SWALLOW_PRESS_THRESHOLD))
+    tau = larynx_response(psi, fps, params)
+    peak = onset + SWALLOW_LANDMARK_PHASES[2] * params.swallow_duration * fps
+    assert abs(np.argmax(tau) - peak) <= 1
+    assert tau.max() == pytest.approx(params.swallow_amplitude * (0.55 + 1.2 * 0.5), rel=0.02)
+    assert np.abs(tau[:onset]).max() < 1e-3  # nothing before the press crosses the threshold
+    weak = psi.copy()
+    weak[:, [K["mouthPress_L"], K["mouthPress_R"]]] = np.minimum(press, 0.9 * SWALLOW_PRESS_THRESHOLD)[:, None]
+    assert np.abs(larynx_response(weak, fps, params)).max() < 1e-3  # a bilabial-strength press is no swallow
+
+
+# --------------------------------------------------------------------------- training
+
+
+def tiny_config(run_overrides=(), data=None):
+    base = ["model.d_model=32", "model.n_heads=4", "model.d_ff=64", "model.window=32", "model.period=10",
+            "model.expression_layers=2", "task.crop=96", "task.batch_size=12", "task.eval_batch=16",
+            "trainer.eval_every=0", "trainer.checkpoint_every=100000", "trainer.log_every=50",
+            "trainer.progress=false", "optim.warmup_steps=30"]
+    data = data if data is not None else ["data.train_subjects=12", "data.sequences_per_subject=4", "data.seconds=20",
+                    "data.heldout_subjects=4", "data.heldout_sequences_per_subject=2"]
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base=None):
+        return compose("train", overrides=base + data + list(run_overrides))
+
+
+def fit(cfg, run_dir: Path):
+    import train
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return train.fit(cfg, run_dir)
+
+
+def test_tiny_training_beats_ridge_and_mean(tmp_path, capsys):
+    result = fit(tiny_config(["trainer.max_steps=300"]), tmp_path / "run")
+    assert result["rmse"] < 0.85 * result["ridge_rmse"], result
+    assert result["rmse"] < 0.5 * result["mean_rmse"], result
+    printed = capsys.readouterr().out
+    assert "ridge, 30-frame window" in printed and "training mean" in printed
+    assert (tmp_path / "run" / "checkpoints" / "last.pt").is_file()
+
+
+SHORT_DATA = ["data.train_subjects=3", "data.sequences_per_subject=2", "data.seconds=8",
+              "data.heldout_subjects=1", "data.heldout_sequences_per_subject=1"]
+
+
+def test_reproducible_and_exact_resume(tmp_path):
+    def weights(run_dir):
+        return torch.load(run_dir / "checkpoints" / "last.pt", weights_only=False)["model"]
+
+    # 12 steps: scheduled sampling switches on at step 2 (10% of max_steps), so its passes are covered.
+    once = tiny_config(["trainer.max_steps=12"], SHORT_DATA)
+    fit(once, tmp_path / "a")
+    fit(once, tmp_path / "b")
+    fit(tiny_config(["trainer.max_steps=12", "trainer.stop_after=7"], SHORT_DATA), tmp_path / "c")
+    assert not (tmp_path / "c" / "eval.json").exists()
+    fit(tiny_config(["trainer.max_steps=12", "resume=true"], SHORT_DATA), tmp_path / "c")
+    a, b, c = weights(tmp_path / "a"), weights(tmp_path / "b"), weights(tmp_path / "c")
+    start = tiny_config(["trainer.max_steps=12", "trainer.stop_after=1"], SHORT_DATA)
+    fit(start, tmp_path / "d")
+    assert any((weights(tmp_path / "d")[k] - a[k]).abs().max() > 1e-4 for k in a)  # training moved the weights
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+        assert torch.equal(a[key], c[key]), key
+
+
+def test_pairs_folder_split_by_file(tmp_path):
+    from tasks.larynx_transformer import Task
+
+    folder = tmp_path / "pairs"
+    for i in range(5):
+        sequence = make_sequence(i % 2, i, 240, 30.0, seed=1)
+        sequence.name = f"take{i}"
+        save_pair(folder / f"take{i}.npz", sequence)
+    cfg = tiny_config(["data=pairs", f"data.path={folder}", "data.val_fraction=0.4", "task.crop=64",
+                       "model.window=16"], data=[])
+    task = Task(cfg)
+    assert (len(task.train), len(task.val)) == (3, 2)
+    assert not {s.name for s in task.train} & {s.name for s in task.val}
+    assert task.model.subjects == sorted({s.subject for s in task.train})
+    train_mean = np.concatenate([s.tau for s in task.train]).astype(np.float64).mean()
+    val_tau = np.concatenate([s.tau for s in task.val]).astype(np.float64)
+    metrics = task.evaluate()
+    assert metrics["mean_rmse"] == pytest.approx(np.sqrt(np.mean((val_tau - train_mean) ** 2)), rel=1e-6)
+    batch = task.batch(0, torch.Generator().manual_seed(0))
+    assert batch["psi"].shape == (12, 64, 55) and batch["tau"].shape == (12, 64)
+
+
+# --------------------------------------------------------------------------- inference CLI
+
+
+def test_infer_cli_writes_tau_track(tmp_path):
+    model = random_model(subjects=["anna"], fps=30.0)
+    checkpoint = tmp_path / "last.pt"
+    save_checkpoint(checkpoint, {"task": "larynx_transformer", "model_config": model.config,
+                                 "model": model.state_dict(), "step": 0})
+    face_time = np.arange(121) / 60  # a 60 fps take, resampled to the model's 30 fps
+    jaw = 0.5 + 0.4 * np.sin(2 * np.pi * face_time)
+    write_csv(tmp_path / "take.csv", {"time": face_time, "jawOpen": jaw, "mouthPress_L": np.full(121, 0.2)},
+              float_format="%.9g")
+    out = tmp_path / "tau.csv"
+    result = subprocess.run([sys.executable, "infer.py", f"checkpoint={checkpoint}",
+                             f"expressions={tmp_path / 'take.csv'}", f"out={out}", "subject=anna"],
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    track = read_tau_track(out)
+    assert track.fps == 30.0 and len(track) == 61
+    np.testing.assert_allclose(track.time, np.arange(61) / 30, atol=1e-5)
+    psi = np.zeros((61, 55), np.float32)
+    psi[:, K["jawOpen"]] = 0.5 + 0.4 * np.sin(2 * np.pi * np.arange(61) / 30)
+    psi[:, K["mouthPress_L"]] = 0.2
+    expected = model.generate_uncached(torch.from_numpy(psi)[None], torch.tensor([1]))[0].numpy()
+    np.testing.assert_allclose(track.tau, expected, atol=1e-5 * model.config["tau_scale"])
+    failed = subprocess.run([sys.executable, "infer.py", f"checkpoint={checkpoint}",
+                             f"expressions={tmp_path / 'take.csv'}", f"out={out}", "subject=zoe"],
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert failed.returncode != 0 and "error: subject 'zoe' was not in the training data" in failed.stderr

@@ -1,0 +1,149 @@
+"""Pair files and the capture alignment CLI (data/pairs.py)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from data.expressions import EXPRESSION_NAMES, read_expressions
+from data.io import InputError, read_tau_track, save_npz, write_csv
+from data.pairs import LarynxSequence, align_pair, load_pair, load_pairs, save_pair, split_pairs
+
+REPO = Path(__file__).resolve().parents[1]
+JAW = EXPRESSION_NAMES.index("jawOpen")
+TRACK_START = 0.5  # the larynx tracker started 0.5 s after the face capture
+
+
+def true_tau(t):
+    """The larynx slide on the face-capture clock (UV units)."""
+    return 0.02 * np.sin(2 * np.pi * 0.7 * t) + 0.01 * t
+
+
+def true_jaw(t):
+    return 0.5 + 0.4 * np.sin(2 * np.pi * 0.3 * t)
+
+
+@pytest.fixture
+def capture(tmp_path):
+    """An expression take at 60 fps (0-8 s) and a tracker CSV at 25 fps that started 0.5 s later (6 s long)."""
+    face_time = np.arange(481) / 60
+    columns = {"time": face_time, "jawOpen": true_jaw(face_time), "mouthPress_L": np.full(481, 0.1)}
+    write_csv(tmp_path / "take.csv", columns, float_format="%.9g")
+    track_time = np.arange(151) / 25  # the tracker's own clock
+    tau = true_tau(track_time + TRACK_START)
+    write_csv(tmp_path / "track.csv", {
+        "frame": np.arange(151), "time": track_time, "x_px": np.full(151, 320.0), "y_px": 400 - 3000 * tau,
+        "tau_px": -3000 * tau, "tau": tau, "confidence": np.full(151, 0.9)}, float_format="%.9g")
+    return tmp_path / "track.csv", tmp_path / "take.csv"
+
+
+def test_alignment_by_time_with_known_offset(capture):
+    track, take = read_tau_track(capture[0]), read_expressions(capture[1])
+    pair, time = align_pair(track, take, fps=30, offset=TRACK_START, subject="anna")
+    assert len(pair) == 181 and pair.fps == 30  # overlap 0.5-6.5 s at 30 fps
+    np.testing.assert_allclose(time, TRACK_START + np.arange(181) / 30, atol=1e-9)
+    # Linear interpolation of the 25 fps track: error <= h^2/8 * max|tau''| ~ 8e-5.
+    np.testing.assert_allclose(pair.tau, true_tau(time), atol=2e-4)
+    np.testing.assert_allclose(pair.psi[:, JAW], true_jaw(time), atol=2e-4)
+    assert pair.subject == "anna"
+    # Without the offset the track is 0.5 s early: errors of the order of the signal.
+    wrong, wrong_time = align_pair(track, take, fps=30, offset=0.0)
+    assert np.abs(wrong.tau - true_tau(wrong_time)).max() > 0.01
+
+
+def test_cli_round_trip(capture, tmp_path):
+    out = tmp_path / "pairs" / "take1.npz"
+    result = subprocess.run(
+        [sys.executable, "-m", "data.pairs", f"track={capture[0]}", f"expressions={capture[1]}", f"out={out}",
+         f"offset={TRACK_START}", "subject=anna"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    pair = load_pair(out)
+    assert pair.fps == pytest.approx(60.0) and len(pair) == 361  # default rate: the expression recording's
+    time = TRACK_START + np.arange(361) / 60
+    np.testing.assert_allclose(np.load(out)["time"], time, atol=1e-9)
+    np.testing.assert_allclose(pair.tau, true_tau(time), atol=2e-4)
+    np.testing.assert_allclose(pair.psi[:, JAW], true_jaw(time), atol=1e-5)
+    assert pair.subject == "anna" and pair.name == "take1"
+    assert not list(out.parent.glob(".*tmp*"))  # atomic write left no temporary file
+
+
+def test_cli_reports_no_overlap(capture, tmp_path):
+    out = tmp_path / "pair.npz"
+    result = subprocess.run(
+        [sys.executable, "-m", "data.pairs", f"track={capture[0]}", f"expressions={capture[1]}", f"out={out}",
+         "offset=20"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0
+    assert "error:" in result.stderr and "track.csv covers 20.000-26.000 s" in result.stderr
+    assert "take.csv covers 0.000-8.000 s" in result.stderr and "offset" in result.stderr
+    assert not out.exists()
+
+
+def make_sequence(length=40, fps=30.0, subject="anna", seed=0):
+    rng = np.random.default_rng(seed)
+    return LarynxSequence(rng.uniform(0, 1, (length, 55)).astype(np.float32),
+                          (0.01 * rng.standard_normal(length)).astype(np.float32), fps, subject, f"seq{seed}")
+
+
+def test_save_load_round_trip(tmp_path):
+    sequence = make_sequence()
+    sequence.eta = 1.1
+    save_pair(tmp_path / "a.npz", sequence)
+    loaded = load_pair(tmp_path / "a.npz")
+    np.testing.assert_array_equal(loaded.psi, sequence.psi)
+    np.testing.assert_array_equal(loaded.tau, sequence.tau)
+    assert (loaded.fps, loaded.subject, loaded.eta, loaded.name) == (30.0, "anna", 1.1, "a")
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda a: a.pop("tau"), r"bad.npz: no 'tau' array \(found: fps, psi\)"),
+    (lambda a: a.update(psi=a["psi"][:, :54]), r"bad.npz: 'psi' has shape \(10, 54\)"),
+    (lambda a: a.update(tau=a["tau"][:9]), r"bad.npz: 'psi' has 10 frames but 'tau' has 9"),
+    (lambda a: a["tau"].__setitem__(3, np.nan), r"bad.npz: 'tau' is not finite at frame 3"),
+    (lambda a: a["psi"].__setitem__((4, JAW), 3.0), r"bad.npz: column 'jawOpen', row 4: weight 3 outside"),
+    (lambda a: a.update(fps=np.float64(-30)), r"bad.npz: 'fps' is -30, expected a positive frame rate"),
+    (lambda a: a.update(subject=np.int64(3)), r"bad.npz: 'subject' is .*, expected a name"),
+])
+def test_load_errors_name_file_and_key(tmp_path, change, match):
+    arrays = {"psi": np.full((10, 55), 0.2, np.float32), "tau": np.zeros(10, np.float32), "fps": np.float64(30)}
+    change(arrays)
+    save_npz(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(InputError, match=match):
+        load_pair(tmp_path / "bad.npz")
+
+
+def test_load_rejects_non_archives(tmp_path):
+    (tmp_path / "junk.npz").write_text("not an archive")
+    with pytest.raises(InputError, match="junk.npz: not a readable .npz archive"):
+        load_pair(tmp_path / "junk.npz")
+    with pytest.raises(InputError, match="nowhere: not a folder"):
+        load_pairs(tmp_path / "nowhere")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="empty: no .npz pair files"):
+        load_pairs(tmp_path / "empty")
+
+
+def test_load_pairs_resamples_to_one_rate(tmp_path):
+    time = np.arange(61) / 60
+    sequence = LarynxSequence(np.tile(true_jaw(time)[:, None], (1, 55)).astype(np.float32),
+                              true_tau(time).astype(np.float32), 60.0, None, "fast")
+    save_pair(tmp_path / "fast.npz", sequence)
+    save_pair(tmp_path / "slow.npz", make_sequence(length=31, fps=30.0))
+    fast, slow = load_pairs(tmp_path, fps=30)
+    assert (fast.name, len(fast), fast.fps, len(slow)) == ("fast", 31, 30.0, 31)
+    np.testing.assert_allclose(fast.tau, true_tau(np.arange(31) / 30), atol=1e-6)
+    assert fast.subject is None
+
+
+def test_split_by_file(tmp_path):
+    pairs = [make_sequence(seed=i) for i in range(10)]
+    train, val = split_pairs(pairs, 0.2, seed=3)
+    assert (len(train), len(val)) == (8, 2)
+    assert not {p.name for p in train} & {p.name for p in val}
+    again_train, again_val = split_pairs(pairs, 0.2, seed=3)
+    assert [p.name for p in again_val] == [p.name for p in val]
+    assert len(split_pairs(pairs[:2], 0.01)[1]) == 1 and len(split_pairs(pairs[:2], 0.99)[0]) == 1
+    with pytest.raises(InputError, match="1 pair file"):
+        split_pairs(pairs[:1], 0.2)
