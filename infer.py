@@ -1,26 +1,59 @@
-"""Inference: ``python infer.py checkpoint=runs/.../checkpoints/last.pt expressions=take.csv out=tau.csv [fps=..]``.
+"""Inference on an expression capture: larynx, cervical spine, swallows and meshes.
+
+    python infer.py expressions=take.csv checkpoint=runs/larynx_transformer/<run>/checkpoints/last.pt out=tau.csv
+    python infer.py expressions=take.csv checkpoint=... head2neck=runs/head2neck/<run>/checkpoints/last.pt \
+        theta_out=theta.npy swallow_template=template.csv swallow_at=[2.0,7.5] meshes=frames/ [rig=hack_rig.npz]
 
 Reads an expression recording (any format ``data.expressions.read_expressions`` reads: Live Link
-Face, ARKit or HACK-named CSV, header-less CSV or ``.npy`` with ``fps=``), resamples it to the
-model's frame rate, streams the expression -> larynx transformer over it and writes the tau track
-(``data.io.write_tau_track``: CSV ``frame,time,tau,fps`` with time in seconds on the recording's
-clock, or a ``.npy`` vector).  tau is in UV units of the larynx map (+ = up the neck).
+Face, ARKit or HACK-named CSV, header-less CSV or ``.npy`` with ``fps=``) and resamples it to one
+frame rate (the larynx model's, else ``out_fps``, else the recording's).  Then, each optional:
 
-The shell is: read the inputs -> one ``predict_*`` function per output -> write the outputs.
-Further outputs (head orientation -> cervical theta, mesh export) add their own predict/write pair.
+- tau: the expression -> larynx transformer streamed over psi (``checkpoint``); without one the
+  larynx rests (tau = 0);
+- swallows: a swallow template (``python -m motion.swallow``) inserted at ``swallow_at`` seconds;
+- theta: the recording's head rotation (``HeadYaw, HeadPitch, HeadRoll``; conventions and options in
+  ``motion/head2neck.py``) through the head -> cervical spine model (``head2neck``); without one, or
+  without recorded head rotation, the neck rests (theta = 0);
+- meshes: the rig posed with (theta, psi, tau, eta) per frame, one PLY or OBJ per frame in ``meshes``.
+
+Outputs: the tau track ``out`` (CSV ``frame,time,tau,fps`` on the recording's clock, or ``.npy``),
+theta ``theta_out`` (``.npy`` [T,8,3], bone frames of the rig), meshes; all written atomically.
+tau is in UV units of the larynx map (+ = up the neck).
 """
 from __future__ import annotations
 
+import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
+import numpy as np
 import torch
 from omegaconf import DictConfig
+from tqdm import tqdm
 
 from data.expressions import ExpressionTrack, read_expressions
-from data.io import InputError, TauTrack, write_tau_track
+from data.io import InputError, TauTrack, save_npy, write_tau_track
+from data.mesh_io import write_obj, write_ply
 from models.checkpoint import load_model
+from models.head2neck import predict_theta
 from models.larynx_transformer import predict_tau
+from models.rig import HeadNeckModel
+from motion.head2neck import UNITS, recentered, ypr_to_matrix
+from motion.swallow import insert_swallows, read_template
+
+MESH_FORMATS = ("ply", "obj")
+
+
+@dataclass
+class Animation:
+    """Per-frame rig inputs at ``fps``: time [T] s, psi [T,55], tau [T], theta [T,8,3] (bone frames)."""
+
+    time: np.ndarray
+    fps: float
+    psi: np.ndarray
+    tau: np.ndarray
+    theta: np.ndarray
 
 
 def predict_larynx(checkpoint: str | Path, expressions: ExpressionTrack, subject: str | None = None) -> TauTrack:
@@ -31,17 +64,104 @@ def predict_larynx(checkpoint: str | Path, expressions: ExpressionTrack, subject
     return TauTrack(tau, resampled.time, model.fps, source=f"{expressions.source} via {checkpoint}")
 
 
+def predict_neck(checkpoint: str | Path, rig: HeadNeckModel, head_ypr: np.ndarray, units: str = "rad",
+                 signs: tuple[float, float, float] = (1.0, 1.0, 1.0), recenter: bool = False) -> np.ndarray:
+    """theta [T,8,3] for recorded head yaw/pitch/roll [T,3] through a head2neck checkpoint."""
+    if units not in UNITS:
+        raise InputError(f"head_units={units}: expected one of {', '.join(UNITS)}")
+    model, _ = load_model(checkpoint, task="head2neck")
+    radians = np.asarray(head_ypr, dtype=np.float64) * UNITS[units] * np.asarray(signs, dtype=np.float64)
+    head = ypr_to_matrix(torch.tensor(radians, dtype=torch.float32))
+    if recenter:
+        head = recentered(head)
+    return predict_theta(model, rig, head).numpy()
+
+
+def animate(cfg: DictConfig, expressions: ExpressionTrack, rig: HeadNeckModel) -> Animation:
+    """The per-frame rig inputs ``cfg`` asks for (see the module docstring)."""
+    if cfg.checkpoint:
+        larynx = predict_larynx(cfg.checkpoint, expressions, None if cfg.subject is None else str(cfg.subject))
+        fps = larynx.fps
+        resampled = expressions.resampled(fps)
+        tau = larynx.tau
+    else:
+        fps = float(cfg.out_fps or expressions.fps)
+        resampled = expressions.resampled(fps)
+        tau = np.zeros(len(resampled))
+    if cfg.swallow_template:
+        template = read_template(cfg.swallow_template)
+        tau = insert_swallows(tau, resampled.time, template, list(cfg.swallow_at),
+                              cfg.swallow_duration_scale, cfg.swallow_amplitude_scale)
+    theta = np.zeros((len(resampled), rig.num_joints, 3), dtype=np.float32)
+    if cfg.head2neck:
+        if resampled.head_ypr is None:
+            print(f"{expressions.source}: no head rotation recorded; the neck rests (theta = 0)")
+        else:
+            signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
+            theta = predict_neck(cfg.head2neck, rig, resampled.head_ypr, cfg.head_units, signs, bool(cfg.recenter))
+    return Animation(resampled.time, fps, resampled.psi, np.asarray(tau, dtype=np.float64), theta)
+
+
+@torch.no_grad()
+def write_meshes(folder: str | Path, rig: HeadNeckModel, animation: Animation, eta: float = 1.0,
+                 mesh_format: str = "ply", batch: int = 64) -> list[Path]:
+    """Pose the rig for every frame and write ``frame_00000.<mesh_format>`` ... into ``folder``."""
+    if mesh_format not in MESH_FORMATS:
+        raise InputError(f"mesh_format={mesh_format}: expected one of {', '.join(MESH_FORMATS)}")
+    folder = Path(folder)
+    faces = rig.faces.numpy()
+    paths = []
+    count = len(animation.time)
+    with tqdm(total=count, desc="meshes", unit="frame", disable=count < 64) as progress:
+        for start in range(0, count, batch):
+            stop = min(start + batch, count)
+            vertices = rig(torch.as_tensor(animation.theta[start:stop], dtype=torch.float32),
+                           torch.as_tensor(animation.psi[start:stop], dtype=torch.float32),
+                           torch.as_tensor(animation.tau[start:stop], dtype=torch.float32),
+                           torch.full((stop - start,), float(eta))).numpy()
+            for offset, frame in enumerate(vertices):
+                path = folder / f"frame_{start + offset:05d}.{mesh_format}"
+                if mesh_format == "ply":
+                    write_ply(path, frame, faces)
+                else:
+                    write_obj(path, frame, faces, rig.rig.uv_coords, rig.rig.faces_uv)
+                paths.append(path)
+            progress.update(stop - start)
+    return paths
+
+
+def run(cfg: DictConfig) -> Animation:
+    torch.set_num_threads(int(cfg.threads))
+    if not cfg.expressions:
+        raise InputError("missing expressions=...; usage: python infer.py expressions=take.csv checkpoint=last.pt "
+                         "out=tau.csv")
+    if not (cfg.out or cfg.theta_out or cfg.meshes):
+        raise InputError("nothing to write: give out=tau.csv, theta_out=theta.npy and/or meshes=folder/")
+    expressions = read_expressions(cfg.expressions, fps=cfg.fps)
+    if expressions.missing:
+        print(f"{cfg.expressions}: no column for {', '.join(expressions.missing)} (left at 0)")
+    rig = HeadNeckModel.from_config(cfg.rig)
+    animation = animate(cfg, expressions, rig)
+    if cfg.out:
+        write_tau_track(cfg.out, TauTrack(animation.tau, animation.time, animation.fps, str(cfg.expressions)))
+        print(f"{cfg.out}: tau for {len(animation.tau)} frames at {animation.fps:g} fps "
+              f"({animation.time[-1] - animation.time[0]:.2f} s of {cfg.expressions})")
+    if cfg.theta_out:
+        save_npy(cfg.theta_out, animation.theta.astype(np.float32))
+        print(f"{cfg.theta_out}: theta {list(animation.theta.shape)}")
+    if cfg.meshes:
+        paths = write_meshes(cfg.meshes, rig, animation, float(cfg.eta), str(cfg.mesh_format))
+        print(f"{cfg.meshes}: {len(paths)} {cfg.mesh_format.upper()} meshes ({rig.num_vertices} vertices each)")
+    return animation
+
+
 @hydra.main(version_base=None, config_path="configs", config_name="infer")
 def main(cfg: DictConfig) -> None:
-    torch.set_num_threads(int(cfg.threads))
     try:
-        expressions = read_expressions(cfg.expressions, fps=cfg.fps)
-        larynx = predict_larynx(cfg.checkpoint, expressions, None if cfg.subject is None else str(cfg.subject))
+        run(cfg)
     except InputError as e:
-        raise SystemExit(f"error: {e}") from None
-    write_tau_track(cfg.out, larynx)
-    print(f"{cfg.out}: tau for {len(larynx)} frames at {larynx.fps:g} fps "
-          f"({larynx.time[-1] - larynx.time[0]:.2f} s of {cfg.expressions})")
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

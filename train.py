@@ -62,6 +62,7 @@ class MetricsLog:
 def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     """Train the task of ``cfg`` in ``run_dir``; returns the final evaluation."""
     trainer = cfg.trainer
+    run_dir.mkdir(parents=True, exist_ok=True)
     if trainer.threads:
         torch.set_num_threads(int(trainer.threads))
     torch.manual_seed(cfg.seed)

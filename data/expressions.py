@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data.io import CsvTable, InputError, load_npy, resample_uniform
+from data.io import CsvTable, InputError, estimate_fps, load_npy, resample_uniform
 
 EXPRESSION_NAMES: tuple[str, ...] = (
     "browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R",
@@ -157,7 +157,7 @@ def _time_axis(table: CsvTable, fps: float | None, timecode_fps: float | None) -
     if fps is None:
         if len(time) < 2:
             raise InputError(f"{path}: one row only; give fps=...")
-        fps = float(1.0 / np.median(steps))
+        fps = estimate_fps(time)
     return time, float(fps)
 
 

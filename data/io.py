@@ -204,6 +204,11 @@ class TauTrack:
         return len(self.tau)
 
 
+def estimate_fps(time: np.ndarray) -> float:
+    """Frame rate from sample times (s): 1 / median step, rounded to 1e-3 (29.97 stays 29.97)."""
+    return round(float(1.0 / np.median(np.diff(time))), 3)
+
+
 def _check_increasing(time: np.ndarray, table: CsvTable, column: str) -> None:
     steps = np.diff(time)
     if (steps <= 0).any():
@@ -214,11 +219,14 @@ def _check_increasing(time: np.ndarray, table: CsvTable, column: str) -> None:
         )
 
 
-def read_tau_track(path: str | os.PathLike, fps: float | None = None) -> TauTrack:
+def read_tau_track(path: str | os.PathLike, fps: float | None = None,
+                   min_confidence: float | None = None) -> TauTrack:
     """Read a tau track from CSV (``tau`` + ``time`` or ``frame`` [+ ``fps``]) or ``.npy``.
 
     ``fps`` overrides the file's rate; it is required for ``.npy`` and for a
-    CSV with only a ``frame`` column and no ``fps`` column.
+    CSV with only a ``frame`` column and no ``fps`` column.  With
+    ``min_confidence``, rows of a CSV whose ``confidence`` column (the
+    tracker's) is below it are dropped: the track then has gaps in time.
     """
     path = Path(path)
     if path.suffix.lower() == ".npy":
@@ -248,7 +256,7 @@ def read_tau_track(path: str | os.PathLike, fps: float | None = None) -> TauTrac
         if rate is None:
             if len(time) < 2:
                 raise InputError(f"{path}: one row only; give fps=... to know its frame rate")
-            rate = float(1.0 / np.median(np.diff(time)))
+            rate = estimate_fps(time)
     elif table.has("frame"):
         frame = table.numeric("frame")
         _check_increasing(frame, table, "frame")
@@ -257,6 +265,11 @@ def read_tau_track(path: str | os.PathLike, fps: float | None = None) -> TauTrac
         time = frame / rate
     else:
         raise InputError(f"{path}: expected a 'time' (seconds) or 'frame' column beside 'tau'")
+    if min_confidence is not None and table.has("confidence"):
+        keep = table.numeric("confidence") >= min_confidence
+        if keep.sum() < 2:
+            raise InputError(f"{path}: fewer than 2 rows with confidence >= {min_confidence:g}")
+        tau, time = tau[keep], time[keep]
     return TauTrack(tau, time, float(rate), str(path))
 
 

@@ -186,7 +186,7 @@ def align_pair(track: TauTrack, expressions: ExpressionTrack, fps: float | None 
 @hydra.main(version_base=None, config_path="../configs", config_name="pairs")
 def main(cfg: DictConfig) -> None:
     try:
-        track = read_tau_track(cfg.track, fps=cfg.track_fps)
+        track = read_tau_track(cfg.track, fps=cfg.track_fps, min_confidence=cfg.min_confidence)
         expressions = read_expressions(cfg.expressions, fps=cfg.expressions_fps)
         pair, time = align_pair(track, expressions, cfg.fps, float(cfg.offset),
                                 None if cfg.subject is None else str(cfg.subject), Path(cfg.out).stem)

@@ -1,0 +1,65 @@
+"""infer.py end to end: expressions -> tau, head rotation -> theta, swallows inserted, meshes written."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from data.io import read_tau_track, write_csv
+from data.synthetic_tau import swallow_profile
+from models.checkpoint import save_checkpoint
+from models.head2neck import build_model, rest_rotations
+from models.rig import HeadNeckModel
+from motion.swallow import SwallowTemplate, write_template
+
+REPO = __import__("pathlib").Path(__file__).resolve().parents[1]
+
+
+def test_capture_to_meshes(tmp_path, builtin_rig):
+    # An untrained head2neck model is the range-of-motion split; the correction makes it exact.
+    model = build_model({"rest_rotations": rest_rotations(builtin_rig).tolist(), "hidden": [16, 16]})
+    head2neck = tmp_path / "h2n.pt"
+    save_checkpoint(head2neck, {"task": "head2neck", "model_config": {"rest_rotations": rest_rotations(
+        builtin_rig).tolist(), "hidden": [16, 16]}, "model": model.state_dict(), "step": 0})
+    time = np.arange(90) / 30.0
+    yaw = 0.4 * np.sin(2 * np.pi * time / 3.0)  # head turns left and right, radians
+    write_csv(tmp_path / "take.csv", {"time": time, "jawOpen": 0.3 + 0.2 * np.sin(time * 5), "HeadYaw": yaw,
+                                      "HeadPitch": np.full(90, 0.1), "HeadRoll": np.zeros(90)}, float_format="%.9g")
+    template_time = np.arange(0, 1.2, 1 / 60)
+    write_template(tmp_path / "swallow.csv", SwallowTemplate(template_time, swallow_profile(template_time),
+                                                             np.zeros_like(template_time), 60.0))
+    result = subprocess.run(
+        [sys.executable, "infer.py", f"expressions={tmp_path / 'take.csv'}", f"out={tmp_path / 'tau.csv'}",
+         f"head2neck={head2neck}", f"theta_out={tmp_path / 'theta.npy'}",
+         f"swallow_template={tmp_path / 'swallow.csv'}", "swallow_at=[1.0]", f"meshes={tmp_path / 'meshes'}"],
+        cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    track = read_tau_track(tmp_path / "tau.csv")
+    assert len(track) == 90 and track.fps == 30.0
+    peak = track.time[np.argmax(track.tau)]
+    assert abs(peak - (1.0 + 0.4 * 1.1)) < 0.1  # the swallow's peak sits 40% into its 1.1 s
+    assert 0.045 < track.tau.max() < 0.065 and abs(track.tau[:20]).max() < 1e-6  # no larynx model: rest elsewhere
+    theta = np.load(tmp_path / "theta.npy")
+    assert theta.shape == (90, 8, 3)
+    head = builtin_rig.head_rotation(torch.tensor(theta)).numpy()
+    target = Rotation.from_euler("YX", np.stack([yaw, np.full(90, 0.1)], 1)).as_matrix()
+    angle = np.degrees(Rotation.from_matrix(np.einsum("tji,tjk->tik", head, target)).magnitude())
+    assert angle.max() < 0.1
+    meshes = sorted((tmp_path / "meshes").glob("frame_*.ply"))
+    assert len(meshes) == 90
+    body = meshes[45].read_bytes().split(b"end_header\n", 1)[1]
+    vertices = np.frombuffer(body[: builtin_rig.num_vertices * 12], dtype="<f4").reshape(-1, 3)
+    psi = torch.zeros(1, 55)
+    psi[0, builtin_rig.expression_names.index("jawOpen")] = 0.3 + 0.2 * np.sin(1.5 * 5)
+    expected = builtin_rig(torch.tensor(theta[45:46]), psi, torch.tensor([track.tau[45]], dtype=torch.float32))[0]
+    assert np.abs(vertices - expected.numpy()).max() < 1e-3
+
+
+def test_nothing_to_write_is_an_error(tmp_path):
+    write_csv(tmp_path / "take.csv", {"time": np.arange(3) / 30, "jawOpen": np.zeros(3)})
+    result = subprocess.run([sys.executable, "infer.py", f"expressions={tmp_path / 'take.csv'}"],
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and "nothing to write" in result.stderr
