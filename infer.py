@@ -22,16 +22,15 @@ tau is in UV units of the larynx map (+ = up the neck).
 """
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 from tqdm import tqdm
 
+from data.cli import run_cli
 from data.expressions import ExpressionTrack, read_expressions
 from data.io import InputError, TauTrack, save_npy, write_tau_track
 from data.mesh_io import write_obj, write_ply
@@ -155,14 +154,5 @@ def run(cfg: DictConfig) -> Animation:
     return animation
 
 
-@hydra.main(version_base=None, config_path="configs", config_name="infer")
-def main(cfg: DictConfig) -> None:
-    try:
-        run(cfg)
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
-
-
 if __name__ == "__main__":
-    main()
+    run_cli("infer", run)

@@ -292,20 +292,17 @@ def convert(hack_dir: str | os.PathLike, ict_dir: str | os.PathLike, out: str | 
     return rig
 
 
-def main(argv: list[str] | None = None) -> None:
-    import hydra
-    from omegaconf import DictConfig
-
-    @hydra.main(version_base=None, config_path="../configs", config_name="assets")
-    def run(cfg: DictConfig) -> None:
-        started = time.perf_counter()
-        rig = convert(cfg.hack_dir, cfg.ict_dir, cfg.out)
-        print(f"wrote {cfg.out}: {len(rig.template)} vertices, {len(rig.faces)} faces, "
-              f"{len(rig.joint_names)} joints, {len(rig.expression_names)} expressions, "
-              f"{len(rig.larynx_maps)} larynx map(s) in {time.perf_counter() - started:.1f} s")
-
-    run()
+def run(cfg) -> RigData:
+    """``python -m data.assets``: convert and report."""
+    started = time.perf_counter()
+    rig = convert(cfg.hack_dir, cfg.ict_dir, cfg.out)
+    print(f"wrote {cfg.out}: {len(rig.template)} vertices, {len(rig.faces)} faces, "
+          f"{len(rig.joint_names)} joints, {len(rig.expression_names)} expressions, "
+          f"{len(rig.larynx_maps)} larynx map(s) in {time.perf_counter() - started:.1f} s")
+    return rig
 
 
 if __name__ == "__main__":
-    main()
+    from data.cli import run_cli
+
+    run_cli("assets", run)

@@ -27,10 +27,10 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 
+from data.cli import run_cli
 from data.expressions import EXPRESSION_NAMES, NUM_EXPRESSIONS, ExpressionTrack, _check_weights, read_expressions
 from data.io import InputError, TauTrack, read_tau_track, resample_uniform, save_npz
 
@@ -183,18 +183,16 @@ def align_pair(track: TauTrack, expressions: ExpressionTrack, fps: float | None 
     return pair, time
 
 
-@hydra.main(version_base=None, config_path="../configs", config_name="pairs")
-def main(cfg: DictConfig) -> None:
-    try:
-        track = read_tau_track(cfg.track, fps=cfg.track_fps, min_confidence=cfg.min_confidence)
-        expressions = read_expressions(cfg.expressions, fps=cfg.expressions_fps)
-        pair, time = align_pair(track, expressions, cfg.fps, float(cfg.offset),
-                                None if cfg.subject is None else str(cfg.subject), Path(cfg.out).stem)
-    except InputError as e:
-        raise SystemExit(f"error: {e}") from None
+def run(cfg: DictConfig) -> LarynxSequence:
+    """``python -m data.pairs``: align, write and report."""
+    track = read_tau_track(cfg.track, fps=cfg.track_fps, min_confidence=cfg.min_confidence)
+    expressions = read_expressions(cfg.expressions, fps=cfg.expressions_fps)
+    pair, time = align_pair(track, expressions, cfg.fps, float(cfg.offset),
+                            None if cfg.subject is None else str(cfg.subject), Path(cfg.out).stem)
     save_pair(cfg.out, pair, time)
     print(f"{cfg.out}: {len(pair)} frames at {pair.fps:g} fps ({time[0]:.3f}-{time[-1]:.3f} s of {cfg.expressions})")
+    return pair
 
 
 if __name__ == "__main__":
-    main()
+    run_cli("pairs", run)

@@ -45,14 +45,13 @@ identity, ``(yaw, pitch, roll) = (HeadYaw, HeadPitch, HeadRoll)``.  Uncertain, h
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from data.cli import run_cli
 from data.expressions import read_expressions
 from data.io import InputError, load_npy, save_npy
 from models.checkpoint import load_model
@@ -162,14 +161,5 @@ def run(cfg: DictConfig) -> np.ndarray:
     return theta.numpy()
 
 
-@hydra.main(version_base=None, config_path="../configs", config_name="head2neck")
-def main(cfg: DictConfig) -> None:
-    try:
-        run(cfg)
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
-
-
 if __name__ == "__main__":
-    main()
+    run_cli("head2neck", run)

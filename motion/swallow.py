@@ -43,7 +43,6 @@ Inputs are tau tracks (``data.io.read_tau_track``: CSV with ``tau`` and
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,6 +54,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.ndimage import gaussian_filter1d, median_filter
 from scipy.signal import find_peaks
 
+from data.cli import run_cli
 from data.io import CsvTable, InputError, TauTrack, atomic_path, read_tau_track, resample_uniform, write_csv, \
     write_tau_track
 
@@ -839,19 +839,5 @@ def run(cfg: DictConfig) -> TemplateBuild | TauTrack:
     raise InputError(f"mode={cfg.mode}: expected 'template' or 'play'")
 
 
-def _main() -> None:
-    import hydra
-
-    @hydra.main(version_base=None, config_path="../configs", config_name="swallow")
-    def main(cfg) -> None:
-        try:
-            run(cfg)
-        except InputError as e:
-            print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
-
-    main()
-
-
 if __name__ == "__main__":
-    _main()
+    run_cli("swallow", run)

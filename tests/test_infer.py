@@ -12,7 +12,6 @@ from data.io import read_tau_track, write_csv
 from data.synthetic_tau import swallow_profile
 from models.checkpoint import save_checkpoint
 from models.head2neck import build_model, rest_rotations
-from models.rig import HeadNeckModel
 from motion.swallow import SwallowTemplate, write_template
 
 REPO = __import__("pathlib").Path(__file__).resolve().parents[1]
