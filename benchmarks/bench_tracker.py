@@ -8,13 +8,18 @@ together):
   forward pass included and without it;
 - tracker frames/s on 256x256 decoded frames with the search band (the target is >= 300), and the
   whole per-frame path from 8-bit RGB (decode + validation + tracking);
+- the larynx slide on noise-free renders (head still, tau -0.03..0.06 in 13 steps, tracked as a
+  sequence): tracked rise over the larynx point's (slope of a line fit, and per frame) and the error;
 - accuracy over ``--seeds`` sequences (noise 0.05, 3 degrees of head motion, swallows): median / p95
-  / max error in pixels of the tracker, of the tracker without the row high-pass, with temporal
-  smoothing, and of the baseline (integer arg-max of the raw correlation over the whole frame).
+  / max error in pixels of the tracker, of ablations (no match window; no column high-pass; no
+  low-pass; the rest render as the kernel instead of the larynx's perturbation; the former matching:
+  the rest render, an 81 px row high-pass alone, no window), with temporal smoothing, and of the
+  baseline (integer arg-max of the raw correlation over the whole frame).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -89,15 +94,40 @@ def main() -> None:
         print(f"baseline (raw correlation over the whole frame): {60 / full_frame:.0f} frames/s")
 
     # ------------------------------------------------------------------ accuracy
-    variants = {"tracker (default)": TrackerConfig(), "no row high-pass": TrackerConfig(highpass_px=0),
-                "smoothing sigma 1 frame": TrackerConfig(smooth_frames=1.0),
-                "smoothing sigma 2 frames": TrackerConfig(smooth_frames=2.0)}
+    default = TrackerConfig()
+    rest_render = dataclasses.replace(kernel, background=None)
+    variants = {"tracker (default)": (kernel, default),
+                "no match window": (kernel, dataclasses.replace(default, window_sigma_x_px=0.0)),
+                "no column high-pass": (kernel, dataclasses.replace(default, column_highpass_px=0)),
+                "no low-pass": (kernel, dataclasses.replace(default, lowpass_sigma_px=0.0)),
+                "rest render as kernel": (rest_render, default),
+                "former matching": (rest_render, dataclasses.replace(default, lowpass_sigma_px=0.0, row_highpass_px=81,
+                                                                     column_highpass_px=0, window_sigma_x_px=0.0)),
+                "smoothing sigma 1 frame": (kernel, dataclasses.replace(default, smooth_frames=1.0)),
+                "smoothing sigma 2 frames": (kernel, dataclasses.replace(default, smooth_frames=2.0))}
+
+    slide_tau = torch.linspace(-0.03, 0.06, 13)
+    render, truth = renderer.render_with_truth(rig.neutral(len(slide_tau)), tau=slide_tau)
+    truth = truth.numpy().astype(np.float64)
+    rest = int(torch.argmin(slide_tau.abs()))
+    true_rise = truth[rest, 1] - truth[:, 1]
+    moved = np.abs(true_rise) > 1.0
+    print("larynx slide, noise-free, head still, tau -0.03..0.06 (tracked rise / the larynx point's):")
+    for name in ("tracker (default)", "no match window", "no column high-pass", "rest render as kernel",
+                 "former matching"):
+        track = track_frames(list(render.normals.numpy()), *variants[name])
+        rise = track.y[rest] - track.y
+        per_frame = rise[moved] / true_rise[moved]
+        err = np.hypot(track.x - truth[:, 0], track.y - truth[:, 1])
+        print(f"  {name:26s} slope {np.polyfit(true_rise, rise, 1)[0]:.3f}  per frame {per_frame.min():.2f}.."
+              f"{per_frame.max():.2f}  error median {np.median(err):.2f}  max {err.max():.2f} px")
+
     errors: dict[str, list] = {name: [] for name in [*variants, "baseline raw arg-max"]}
     config = SequenceConfig(frames=args.frames, noise=0.05, head_motion_deg=3.0, swallows_per_minute=20.0)
     for seed in range(args.seeds):
         seq = make_sequence(rig, config, seed=100 + seed)
-        for name, tracker_config in variants.items():
-            track = track_frames(seq.normals, kernel, tracker_config)
+        for name, (variant_kernel, tracker_config) in variants.items():
+            track = track_frames(seq.normals, variant_kernel, tracker_config)
             errors[name].append(np.hypot(track.x - seq.larynx_px[:, 0], track.y - seq.larynx_px[:, 1]))
         base = np.array([raw_correlation_argmax(n, kernel) for n in seq.normals])
         errors["baseline raw arg-max"].append(np.hypot(*(base - seq.larynx_px).T))

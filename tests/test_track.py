@@ -63,9 +63,11 @@ def test_accuracy_on_noisy_sequences_with_head_motion_beats_raw_correlation(sequ
     base_err = np.hypot(*(baseline - sequence.larynx_px).T)
     assert np.median(err) < 0.7 * np.median(base_err)
     assert np.percentile(err, 95) < 0.5 * np.percentile(base_err, 95)
-    # The row high-pass is what keeps up with swallows: without it the kernel's neck holds it back.
-    unfiltered = errors(track_frames(sequence.normals, kernel, config(highpass_px=0)), sequence.larynx_px)
-    assert np.percentile(err, 95) < 0.5 * np.percentile(unfiltered, 95)
+    # The band-pass holds the match on the larynx: without its high-passes the larynx is lost (most frames
+    # rejected), without its low-pass the noise triples the median error.
+    assert track_frames(sequence.normals, kernel, config(row_highpass_px=0, column_highpass_px=0)).accepted.mean() < 0.5
+    unsmoothed = errors(track_frames(sequence.normals, kernel, config(lowpass_sigma_px=0)), sequence.larynx_px)
+    assert np.median(unsmoothed) > 3 * np.median(err)
 
 
 def test_accuracy_holds_for_another_seed_with_8bit_quantisation_and_blur(builtin_rig, kernel):
@@ -90,7 +92,7 @@ def test_calibration_matches_the_measured_shift(builtin_rig, kernel):
 
 def test_kernel_cut_from_the_first_frame_tracks_within_a_pixel(sequence, kernel):
     """A kernel cut from a capture carries that frame's noise, head pose and larynx size: looser than the
-    rig's kernel (measured on seeds 0-3: median 0.37-0.67 px, p95 0.80-1.38 px), still well ahead of raw
+    rig's kernel (measured on seeds 0-3: median 0.28-0.58 px, p95 0.60-0.98 px), still well ahead of raw
     correlation."""
     x, y = sequence.larynx_px[0]
     cut = kernel_from_frame(sequence.normals[0], x, y)
@@ -106,7 +108,7 @@ def test_rescaled_kernel_tracks_frames_at_another_scale(builtin_rig, kernel):
     seq = make_sequence(builtin_rig, cfg, seed=4)
     rescaled = rescale_kernel(kernel, 0.06)
     assert rescaled.size == (93, 93)                            # 70 px * 0.08 / 0.06
-    assert abs(rescaled.centre[0] - 46.0) < 0.01                # the middle of 93 px
+    assert abs(rescaled.centre[0] - 46.0) <= 0.5                # the middle of 93 px, on the context's grid
     direct = rig_kernel(builtin_rig, 0.06, 93)
     assert float((rescaled.normals * direct.normals).sum(-1).mean()) > 0.995   # same normals, resampled
     err = errors(track_frames(seq.normals, rescaled), seq.larynx_px)
@@ -291,7 +293,10 @@ def test_cli_without_calibration_leaves_tau_empty_and_cuts_the_kernel(tmp_path, 
     out = tmp_path / "t.csv"
     track_run(compose_config("track", [f"input={tmp_path / 's.npy'}", f"out={out}", "plot=null", "kernel=frame",
                                        f"init_x={x}", f"init_y={y}", "kernel_size=40", "progress=false",
-                                       "tracker.highpass_px=41"]))
+                                       # the band-pass and window scaled to these frames' 0.12 cm/px
+                                       "tracker.lowpass_sigma_px=2", "tracker.row_highpass_px=15",
+                                       "tracker.column_highpass_px=55", "tracker.window_sigma_x_px=13",
+                                       "tracker.window_sigma_y_px=9"]))
     table = CsvTable(out)
     assert all(v == "nan" for v in table.text("tau"))
     assert np.abs(table.numeric("y_px") - short.larynx_px[:, 1]).max() < 0.5
@@ -314,20 +319,51 @@ def test_cli_reports_bad_input_with_exit_code_2(tmp_path):
 
 
 @pytest.mark.shared
-def test_tracks_the_real_rig_renders_under_head_motion(real_rig):
-    """The real HACK mesh (14k vertices, quads), its larynx and kernel: 3 degrees of head motion, eta and
-    noise as in the issue, the larynx at rest.  (Its slide along the neck is another matter: HACK's broad
-    larynx changes shape as it slides and its neck's own relief dominates a 70 px kernel; on noise-free
-    renders the tracked rise is 0.2-0.6 of the larynx point's, see the report of issue #3.)"""
-    cfg = SequenceConfig(frames=60, size=256, noise=0.05, head_motion_deg=3.0, swallows_per_minute=0.0,
-                         speech=0.0, drift=0.0)
-    seq = make_sequence(real_rig, cfg, seed=0)
+def test_follows_the_real_rig_larynx_slide(real_rig):
+    """Noise-free renders of the real HACK rig (14k vertices, quads), head still, tau -0.03..0.06 (about
+    -1..2 cm): the tracked rise follows the larynx point's (the former matching, an 81 px row high-pass of
+    the rest render, followed 0.2 of it).  What is left: 0.7-1.4 px short for tau 0.0075-0.03, where the
+    coarse mesh changes the larynx's outline as it slides, and 1.9 px at 0.06, where its cap wraps under
+    the jaw out of the front view."""
+    tau = torch.linspace(-0.03, 0.06, 13)                      # 0.0075 (~3 px) apart: tracked as a sequence
+    render, truth = NeckRenderer(real_rig, neck_camera(real_rig)).render_with_truth(real_rig.neutral(13), tau=tau)
+    truth = truth.numpy().astype(np.float64)
+    track = track_frames(render.normals.numpy(), rig_kernel(real_rig))
+    assert track.accepted.all()
+    rest = 4                                                   # tau = 0
+    true_rise, tracked_rise = truth[rest, 1] - truth[:, 1], track.y[rest] - track.y
+    assert 0.9 < np.polyfit(true_rise, tracked_rise, 1)[0] < 1.1    # measured 0.95
+    assert abs(tracked_rise[-1] / true_rise[-1] - 1) < 0.15          # tau 0.06: 23.9 px of 25.7
+    err = errors(track, truth)
+    assert np.median(err) < 1.0 and err.max() < 2.5                 # measured 0.63, 1.7
+
+
+@pytest.mark.shared
+def test_tracks_the_real_rig_through_swallows_under_head_motion(real_rig):
+    """The issue's conditions on the real HACK rig: noise 0.05, 3 degrees of head motion, eta, swallows.
+    Measured on seeds 0-8: median 0.25-0.59 px, p95 0.82-1.57 px (pooled 0.37 / 1.16); raw correlation
+    0.7-1.5 px and 4.5-28 px (it stays on the neck while the larynx rises)."""
+    seq = make_sequence(real_rig, ISSUE_SEQUENCE, seed=0)
+    assert np.ptp(seq.larynx_px, axis=0).max() > 2.0 and np.ptp(seq.tau) > 0.05   # head motion and a swallow
     kernel = rig_kernel(real_rig)
     track = track_frames(seq.normals, kernel)
     err = errors(track, seq.larynx_px)
     baseline = np.array([raw_correlation_argmax(n, kernel) for n in seq.normals])
     base_err = np.hypot(*(baseline - seq.larynx_px).T)
-    assert np.ptp(seq.larynx_px, axis=0).max() > 2.0           # the head motion moves the larynx
     assert track.accepted.all()
     assert np.median(err) < 0.5 and np.percentile(err, 95) < 1.5
-    assert np.median(err) < np.median(base_err)
+    assert np.median(err) < 0.5 * np.median(base_err) and np.percentile(err, 95) < 0.1 * np.percentile(base_err, 95)
+
+
+def test_settings_follow_the_capture_pixel_scale(builtin_rig):
+    """At 0.12 cm/px the pixel settings shrink with the larynx's image (TrackerConfig.at_scale)."""
+    cm_per_px = 0.12
+    cfg = SequenceConfig(**{**ISSUE_SEQUENCE.__dict__, "size": 171, "cm_per_px": cm_per_px, "swallows_per_minute": 6.0})
+    seq = make_sequence(builtin_rig, cfg, seed=1)
+    kernel = rig_kernel(builtin_rig, cm_per_px)
+    scaled = TrackerConfig().at_scale(cm_per_px)
+    assert scaled.row_highpass_px == 15 and scaled.column_highpass_px == 67 and scaled.band_rows == 16
+    err = errors(track_frames(seq.normals, kernel, scaled), seq.larynx_px)
+    unscaled = errors(track_frames(seq.normals, kernel, TrackerConfig()), seq.larynx_px)
+    assert np.median(err) < 0.45 and np.percentile(err, 95) < 1.0
+    assert np.median(err) < 0.8 * np.median(unscaled)
