@@ -32,7 +32,6 @@ writes ``frame_00000.png ...`` (or ``normals.npy`` [T,H,W,3] float32 raw normals
 """
 from __future__ import annotations
 
-import sys
 import time as _time
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -40,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from data.cli import run_cli
 from data.io import InputError, save_npy, write_csv
 from data.render import (DEFAULT_CM_PER_PX, DEFAULT_SIZE, Camera, NeckRenderer, cv2, decode_normals, encode_normals,
                          neck_camera, write_normal_image)
@@ -190,19 +190,5 @@ def run(cfg) -> NormalSequence:
     return sequence
 
 
-def _main() -> None:
-    import hydra
-
-    @hydra.main(version_base=None, config_path="../configs", config_name="normal_sequences")
-    def main(cfg) -> None:
-        try:
-            run(cfg)
-        except InputError as e:
-            print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
-
-    main()
-
-
 if __name__ == "__main__":
-    _main()
+    run_cli("normal_sequences", run)

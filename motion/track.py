@@ -90,7 +90,6 @@ from __future__ import annotations
 
 import math
 import re
-import sys
 import time as _time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -99,6 +98,7 @@ from typing import Iterable, Iterator
 import numpy as np
 import torch
 
+from data.cli import run_cli
 from data.io import InputError, atomic_path, load_npy, write_csv
 from data.render import (DEFAULT_CM_PER_PX, FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, NeckRenderer, cv2,
                          decode_normals, larynx_point, neck_camera, read_normal_image)
@@ -817,19 +817,5 @@ def run(cfg) -> dict:
     return columns
 
 
-def _main() -> None:
-    import hydra
-
-    @hydra.main(version_base=None, config_path="../configs", config_name="track")
-    def main(cfg) -> None:
-        try:
-            run(cfg)
-        except InputError as e:
-            print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
-
-    main()
-
-
 if __name__ == "__main__":
-    _main()
+    run_cli("track", run)
