@@ -55,8 +55,8 @@ from scipy.ndimage import gaussian_filter1d, median_filter
 from scipy.signal import find_peaks
 
 from data.cli import run_cli
-from data.io import CsvTable, InputError, TauTrack, atomic_path, read_tau_track, resample_uniform, write_csv, \
-    write_tau_track
+from data.io import (CsvTable, InputError, TauTrack, figure, read_tau_track, resample_uniform, save_figure,
+                     write_csv, write_tau_track)
 
 LANDMARK_NAMES: tuple[str, ...] = ("onset", "dip", "peak", "undershoot", "return")
 ONSET, DIP, PEAK, UNDERSHOOT, RETURN = range(5)
@@ -721,13 +721,8 @@ def read_tracks(paths: Sequence[str | Path], npy_fps: float | None = None) -> li
 
 def plot_template(path: str | Path, build: TemplateBuild) -> None:
     """Aligned swallows, the template +- std and the naive unaligned mean, saved atomically."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     t = build.template
-    fig, ax = plt.subplots(figsize=(9, 5))
+    fig, ax = figure(figsize=(9, 5))
     for k, curve in enumerate(build.aligned):
         ax.plot(t.time, curve, color="0.6", lw=0.8, label="aligned swallows" if k == 0 else None)
     ax.fill_between(t.time, t.tau - t.std, t.tau + t.std, color="C0", alpha=0.25, label="template ± std")
@@ -747,19 +742,11 @@ def plot_template(path: str | Path, build: TemplateBuild) -> None:
     ax.set_ylabel("tau above rest (UV units; 0.03 ≈ 1 cm)")
     ax.set_title("Swallow template: landmark-registered mean")
     ax.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def plot_playback(path: str | Path, track: TauTrack, out: np.ndarray, at: Sequence[float]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(10, 4))
+    fig, ax = figure(figsize=(10, 4))
     ax.plot(track.time, track.tau, color="0.5", lw=1, label="input track")
     ax.plot(track.time, out, color="C0", lw=1.5, label="with swallows")
     for x in at:
@@ -767,10 +754,7 @@ def plot_playback(path: str | Path, track: TauTrack, out: np.ndarray, at: Sequen
     ax.set_xlabel("time (s)")
     ax.set_ylabel("tau (UV units)")
     ax.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 # --------------------------------------------------------------------------- CLI

@@ -99,7 +99,7 @@ import numpy as np
 import torch
 
 from data.cli import run_cli
-from data.io import InputError, atomic_path, load_npy, write_csv
+from data.io import InputError, figure, load_npy, save_figure, write_csv
 from data.render import (DEFAULT_CM_PER_PX, FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, NeckRenderer, cv2,
                          decode_normals, larynx_point, neck_camera, read_normal_image)
 
@@ -694,13 +694,8 @@ def track_columns(track: Track, fps: float, rest_frame: int = 0, px_per_tau: flo
 
 def plot_track(path: str | Path, columns: dict, title: str = "") -> None:
     """y (px) / tau over time and the confidence, as a PNG (atomic)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     time = columns["time"]
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 5), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    fig, (top, bottom) = figure(nrows=2, ncols=1, figsize=(9, 5), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
     top.plot(time, columns["tau_px"], color="tab:blue", lw=1.2)
     top.set_ylabel("larynx rise tau_px (px, + = up)")
     calibrated = np.isfinite(columns["tau"]).any()
@@ -721,10 +716,7 @@ def plot_track(path: str | Path, columns: dict, title: str = "") -> None:
     bottom.set_ylabel("confidence")
     bottom.set_xlabel("time (s)")
     bottom.grid(alpha=0.3)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 # --------------------------------------------------------------------------- CLI
