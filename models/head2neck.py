@@ -54,7 +54,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from models.joint_limits import RANGES_DEG, euler_limits
+from models.joint_limits import euler_limits, range_of_motion_shares
 from models.rotations import (axis_angle_to_euler, euler_to_axis_angle, euler_to_quaternion, matrix_to_axis_angle,
                               matrix_to_quaternion, matrix_to_rot6d, quaternion_multiply, quaternion_to_axis_angle,
                               quaternion_to_matrix, relative_angle)
@@ -74,18 +74,6 @@ def rest_rotations(rig) -> torch.Tensor:
     return rig.anatomical_rest_rotations.detach().clone()
 
 
-def range_shares(dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each joint's share of the chain's range per bone axis [J,3], for positive and negative motion.
-
-    Positive: flexion, axial rotation, lateral bending; negative: extension, axial, lateral
-    (``models.joint_limits.RANGES_DEG``).  Columns sum to 1.
-    """
-    flexion, extension, lateral, axial = torch.tensor(RANGES_DEG, dtype=dtype).T
-    positive = torch.stack([flexion, axial, lateral], dim=1)
-    negative = torch.stack([extension, axial, lateral], dim=1)
-    return positive / positive.sum(0), negative / negative.sum(0)
-
-
 def split_head_rotation(head_rotations: torch.Tensor, rest: torch.Tensor, split: str) -> torch.Tensor:
     """Analytic baseline: the head's rotation vector split over the joints by shares per bone axis.
 
@@ -98,7 +86,7 @@ def split_head_rotation(head_rotations: torch.Tensor, rest: torch.Tensor, split:
     joints = rest.shape[0]
     if split == "uniform":
         return in_bones / joints
-    positive, negative = (s.to(v) for s in range_shares())
+    positive, negative = (s.to(v) for s in range_of_motion_shares())
     return in_bones * torch.where(in_bones >= 0, positive, negative)
 
 

@@ -57,14 +57,16 @@ def euler_limits(margin: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.tensor(lower, dtype=torch.float32), torch.tensor(upper, dtype=torch.float32)
 
 
-def range_of_motion_share() -> torch.Tensor:
-    """[J,3] each joint's share of the chain's total range per Euler axis (ax, ay, az); columns sum to 1.
+def range_of_motion_shares(dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each joint's share of the chain's range per Euler axis (ax, ay, az), for positive and negative
+    motion: [J,3] each, columns summing to 1.
 
-    The sagittal share uses the full flexion+extension range.
+    Positive: flexion, axial rotation, lateral bending; negative: extension, axial, lateral.
     """
-    flexion, extension, lateral, axial = RANGES_DEG.T
-    rom = np.stack([flexion + extension, axial, lateral], axis=1)
-    return torch.tensor(rom / rom.sum(0, keepdims=True), dtype=torch.float32)
+    flexion, extension, lateral, axial = torch.tensor(RANGES_DEG, dtype=dtype).T
+    positive = torch.stack([flexion, axial, lateral], dim=1)
+    negative = torch.stack([extension, axial, lateral], dim=1)
+    return positive / positive.sum(0), negative / negative.sum(0)
 
 
 def rotation_limit_energy(theta: torch.Tensor, margin: float = 1.0) -> torch.Tensor:
