@@ -71,15 +71,12 @@ def larynx_scalar(tau: torch.Tensor, maps: torch.Tensor, map_weights: torch.Tens
 
     tau [B] (UV units, + = up), maps [K,H,W], map_weights [B,K],
     grid [N,2] vertex UVs in grid_sample coordinates ((2u - 1, 2(1 - v) - 1)) -> [B,N].
+    All frames sample the K maps as channels of one image (sampling is linear, so the identity
+    weights apply afterwards): no per-frame copy of the maps.
     """
-    batch = tau.shape[0]
-    if maps.shape[0] == 1:
-        image = maps[None].expand(batch, -1, -1, -1) * map_weights[:, :, None, None]
-    else:
-        image = torch.einsum("bk,khw->bhw", map_weights, maps)[:, None]
-    shifted = grid[None].expand(batch, -1, -1) + torch.stack([torch.zeros_like(tau), 2.0 * tau], dim=-1)[:, None]
-    sampled = F.grid_sample(image, shifted[:, None], mode="bilinear", padding_mode="border", align_corners=True)
-    return sampled[:, 0, 0]
+    shifted = grid[None].expand(tau.shape[0], -1, -1) + torch.stack([torch.zeros_like(tau), 2.0 * tau], dim=-1)[:, None]
+    sampled = F.grid_sample(maps[None], shifted[None], mode="bilinear", padding_mode="border", align_corners=True)
+    return torch.einsum("kbn,bk->bn", sampled[0], map_weights)
 
 
 def forward_kinematics(rotations: torch.Tensor, rest_local: torch.Tensor, parents: Sequence[int]) -> torch.Tensor:
