@@ -23,7 +23,6 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,22 +33,7 @@ from models.checkpoint import load_model  # noqa: E402
 from models.head2neck import build_model, head_error_deg, predict_theta, rest_rotations  # noqa: E402
 from models.joint_limits import within_limits  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
-
-
-def frames_per_second(run, frames: int, repeats: int) -> tuple[float, float]:
-    """(frames per wall-clock second, frames per CPU second of this process), medians over repeats.
-
-    On a CPU shared with other jobs the wall-clock figure depends on their load; the CPU-time figure
-    (divided by the thread count) is what one idle core would do.
-    """
-    run()
-    wall, cpu = [], []
-    for _ in range(repeats):
-        start, start_cpu = time.perf_counter(), time.process_time()
-        run()
-        wall.append(time.perf_counter() - start)
-        cpu.append(time.process_time() - start_cpu)
-    return frames / float(np.median(wall)), frames / float(np.median(cpu))
+from timing import frames_per_second  # noqa: E402
 
 
 def inference(args) -> None:
@@ -69,7 +53,7 @@ def inference(args) -> None:
               f"+ correction)")
     theta = predict_theta(model, rig, head)
     print(f"head orientation error: max {float(head_error_deg(theta, head, rig).max()):.2e} deg; "
-          f"joints inside the limits: {float(within_limits(theta).float().mean()):.4f}")
+          f"joints inside the limits: {float(within_limits(rig.to_anatomical(theta)).float().mean()):.4f}")
 
 
 def training(args) -> None:

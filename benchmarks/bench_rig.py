@@ -15,7 +15,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -24,23 +23,7 @@ sys.path[:0] = [str(REPO), str(REPO / "tests")]
 from data.assets import RigData, convert  # noqa: E402
 from data.expressions import EXPRESSION_NAMES  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
-
-
-def frames_per_second(run, batch: int, repeats: int) -> tuple[float, float]:
-    """(wall-clock frames/s, frames per CPU second), medians over ``repeats`` calls.
-
-    The CPU-time figure is what the cores did; on a shared machine the wall clock also counts time
-    the threads waited for a core held by another process.
-    """
-    for _ in range(3):
-        run()
-    wall, cpu = [], []
-    for _ in range(repeats):
-        start, start_cpu = time.perf_counter(), time.process_time()
-        run()
-        wall.append(time.perf_counter() - start)
-        cpu.append(time.process_time() - start_cpu)
-    return batch / float(np.median(wall)), batch / float(np.median(cpu))
+from timing import frames_per_second  # noqa: E402
 
 
 def main() -> None:
@@ -80,7 +63,7 @@ def main() -> None:
     tau = (torch.rand(b, generator=g) - 0.5) * 0.1
     eta = torch.ones(b)
     with torch.no_grad():
-        ours, ours_cpu = frames_per_second(lambda: model(theta, psi, tau, eta), b, args.repeats)
+        ours, ours_cpu = frames_per_second(lambda: model(theta, psi, tau, eta), b, args.repeats, warmup=10)
     print(f"ours: {ours:,.0f} frames/s wall clock, {ours_cpu:,.0f} frames per CPU second  (batch {b}, "
           f"{model.num_vertices} vertices, 55 expressions, {args.threads} threads)")
     if have_release and not args.rig and rig.template.shape[0] == 14062:
