@@ -149,6 +149,11 @@ class CsvTable:
     def __len__(self) -> int:
         return len(self.rows)
 
+    def keep_rows(self, keep: np.ndarray) -> None:
+        """Keep only the data rows where ``keep`` [rows] is True (their line numbers go with them)."""
+        self.rows = [row for row, k in zip(self.rows, keep) if k]
+        self.lines = [line for line, k in zip(self.lines, keep) if k]
+
     def has(self, name: str) -> bool:
         return name in self._index
 
@@ -262,6 +267,12 @@ def read_tau_track(path: str | os.PathLike, fps: float | None = None,
         raise InputError(f"{path}: unsupported tau track format '{path.suffix}', expected .csv or .npy")
 
     table = CsvTable(path)
+    if min_confidence is not None and table.has("confidence"):
+        # Before parsing tau: a tracker writes NaN positions for frames it has lost (confidence 0).
+        keep = table.numeric("confidence") >= min_confidence
+        if keep.sum() < 2:
+            raise InputError(f"{path}: fewer than 2 rows with confidence >= {min_confidence:g}")
+        table.keep_rows(keep)
     tau = table.numeric("tau")
     file_fps = None
     if table.has("fps"):
@@ -285,11 +296,6 @@ def read_tau_track(path: str | os.PathLike, fps: float | None = None,
         time = frame / rate
     else:
         raise InputError(f"{path}: expected a 'time' (seconds) or 'frame' column beside 'tau'")
-    if min_confidence is not None and table.has("confidence"):
-        keep = table.numeric("confidence") >= min_confidence
-        if keep.sum() < 2:
-            raise InputError(f"{path}: fewer than 2 rows with confidence >= {min_confidence:g}")
-        tau, time = tau[keep], time[keep]
     return TauTrack(tau, time, float(rate), str(path))
 
 

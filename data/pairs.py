@@ -161,11 +161,10 @@ def align_pair(track: TauTrack, expressions: ExpressionTrack, fps: float | None 
                subject: str | None = None, name: str = "") -> tuple[LarynxSequence, np.ndarray]:
     """Align a tau track with an expression recording by time, resampled to ``fps`` on their overlap.
 
-    ``offset`` (s) is added to the track's time.  ``fps`` defaults to the expression rate rounded
-    to 0.001 fps (a rate estimated from time stamps, e.g. 59.99998, means 60).
+    ``offset`` (s) is added to the track's time.  ``fps`` defaults to the expression rate.
     Returns (the pair, its time [T] in seconds on the expression clock).
     """
-    fps = round(float(expressions.fps), 3) if fps is None else float(fps)
+    fps = float(expressions.fps if fps is None else fps)
     if not fps > 0:
         raise InputError(f"fps must be positive, got {fps}")
     track_time = track.time + offset

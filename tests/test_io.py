@@ -9,13 +9,14 @@ from data.io import InputError, atomic_path, read_tau_track, write_csv
 
 def test_tracker_rows_below_confidence_are_dropped(tmp_path):
     time = np.arange(6) / 30.0
-    write_csv(tmp_path / "track.csv", {"frame": np.arange(6), "time": time, "tau": [0, 0.01, 0.5, 0.03, 0.04, 0.05],
+    write_csv(tmp_path / "track.csv", {"frame": np.arange(6), "time": time, "tau": [0, 0.01, np.nan, 0.03, 0.04, 0.05],
                                        "confidence": [0.9, 0.8, 0.0, 0.9, 0.95, 0.9]}, float_format="%.9g")
     kept = read_tau_track(tmp_path / "track.csv", min_confidence=0.3)
     np.testing.assert_allclose(kept.tau, [0, 0.01, 0.03, 0.04, 0.05])
     np.testing.assert_allclose(kept.time, time[[0, 1, 3, 4, 5]])
     assert kept.fps == 30.0  # from the time stamps, rounded to 1e-3
-    assert len(read_tau_track(tmp_path / "track.csv")) == 6
+    with pytest.raises(InputError, match="column 'tau', line 4: value is nan"):  # a lost frame, unfiltered
+        read_tau_track(tmp_path / "track.csv")
 
 
 @pytest.mark.parametrize("rows, message", [
