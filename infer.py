@@ -8,8 +8,8 @@ Reads an expression recording (any format ``data.expressions.read_expressions`` 
 Face, ARKit or HACK-named CSV, header-less CSV or ``.npy`` with ``fps=``) and resamples it to one
 frame rate (the larynx model's, else ``out_fps``, else the recording's).  Then, each optional:
 
-- tau: the expression -> larynx transformer streamed over psi (``checkpoint``); without one the
-  larynx rests (tau = 0);
+- tau: the expression -> larynx transformer streamed over psi (``checkpoint``, with ``eta`` if the
+  model takes it); without one the larynx rests (tau = 0);
 - swallows: a swallow template (``python -m motion.swallow``) inserted at ``swallow_at`` seconds;
 - theta: the recording's head rotation (``HeadYaw, HeadPitch, HeadRoll``; conventions and options in
   ``motion/head2neck.py``) through the head -> cervical spine model (``head2neck``); without one, or
@@ -38,7 +38,7 @@ from models.checkpoint import load_model
 from models.head2neck import predict_theta
 from models.larynx_transformer import predict_tau
 from models.rig import HeadNeckModel
-from motion.head2neck import UNITS, recentered, ypr_to_matrix
+from motion.head2neck import head_rotations_from_ypr, load_head2neck, recentered
 from motion.swallow import insert_swallows, read_template
 
 MESH_FORMATS = ("ply", "obj")
@@ -55,49 +55,37 @@ class Animation:
     theta: np.ndarray
 
 
-def predict_larynx(checkpoint: str | Path, expressions: ExpressionTrack, subject: str | None = None) -> TauTrack:
-    """The tau track the transformer of ``checkpoint`` predicts for a recording, at the model's rate."""
-    model, _ = load_model(checkpoint, task="larynx_transformer")
-    resampled = expressions.resampled(model.fps)
-    tau = predict_tau(model, resampled.psi, subject)
-    return TauTrack(tau, resampled.time, model.fps, source=f"{expressions.source} via {checkpoint}")
+def predict_neck(model, rig: HeadNeckModel, head_ypr: np.ndarray, units: str = "rad",
+                 signs: tuple[float, float, float] = (1.0, 1.0, 1.0), recenter: bool = False,
+                 label: str = "head rotation") -> np.ndarray:
+    """Bone-frame theta [T,8,3] for recorded head yaw/pitch/roll [T,3] through a head2neck model."""
+    head = head_rotations_from_ypr(head_ypr, units, signs, label)
+    return predict_theta(model, rig, recentered(head) if recenter else head).numpy()
 
 
-def predict_neck(checkpoint: str | Path, rig: HeadNeckModel, head_ypr: np.ndarray, units: str = "rad",
-                 signs: tuple[float, float, float] = (1.0, 1.0, 1.0), recenter: bool = False) -> np.ndarray:
-    """theta [T,8,3] for recorded head yaw/pitch/roll [T,3] through a head2neck checkpoint."""
-    if units not in UNITS:
-        raise InputError(f"head_units={units}: expected one of {', '.join(UNITS)}")
-    model, _ = load_model(checkpoint, task="head2neck")
-    radians = np.asarray(head_ypr, dtype=np.float64) * UNITS[units] * np.asarray(signs, dtype=np.float64)
-    head = ypr_to_matrix(torch.tensor(radians, dtype=torch.float32))
-    if recenter:
-        head = recentered(head)
-    return predict_theta(model, rig, head).numpy()
-
-
-def animate(cfg: DictConfig, expressions: ExpressionTrack, rig: HeadNeckModel) -> Animation:
-    """The per-frame rig inputs ``cfg`` asks for (see the module docstring)."""
-    if cfg.checkpoint:
-        larynx = predict_larynx(cfg.checkpoint, expressions, None if cfg.subject is None else str(cfg.subject))
-        fps = larynx.fps
-        resampled = expressions.resampled(fps)
-        tau = larynx.tau
+def animate(cfg: DictConfig, expressions: ExpressionTrack, rig: HeadNeckModel, neck_model=None) -> Animation:
+    """The per-frame rig inputs ``cfg`` asks for (see the module docstring), at one frame rate;
+    ``neck_model`` a head2neck model for ``rig``."""
+    larynx_model = load_model(cfg.checkpoint, task="larynx_transformer")[0] if cfg.checkpoint else None
+    fps = larynx_model.fps if larynx_model is not None else float(cfg.out_fps or expressions.fps)
+    resampled = expressions.resampled(fps)
+    if larynx_model is not None:
+        tau = predict_tau(larynx_model, resampled.psi, None if cfg.subject is None else str(cfg.subject),
+                          float(cfg.eta))
     else:
-        fps = float(cfg.out_fps or expressions.fps)
-        resampled = expressions.resampled(fps)
         tau = np.zeros(len(resampled))
     if cfg.swallow_template:
         template = read_template(cfg.swallow_template)
         tau = insert_swallows(tau, resampled.time, template, list(cfg.swallow_at),
                               cfg.swallow_duration_scale, cfg.swallow_amplitude_scale)
     theta = np.zeros((len(resampled), rig.num_joints, 3), dtype=np.float32)
-    if cfg.head2neck:
+    if neck_model is not None:
         if resampled.head_ypr is None:
             print(f"{expressions.source}: no head rotation recorded; the neck rests (theta = 0)")
         else:
             signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
-            theta = predict_neck(cfg.head2neck, rig, resampled.head_ypr, cfg.head_units, signs, bool(cfg.recenter))
+            theta = predict_neck(neck_model, rig, resampled.head_ypr, cfg.head_units, signs, bool(cfg.recenter),
+                                 f"{expressions.source} (HeadYaw, HeadPitch, HeadRoll)")
     return Animation(resampled.time, fps, resampled.psi, np.asarray(tau, dtype=np.float64), theta)
 
 
@@ -139,8 +127,11 @@ def run(cfg: DictConfig) -> Animation:
     expressions = read_expressions(cfg.expressions, fps=cfg.fps)
     if expressions.missing:
         print(f"{cfg.expressions}: no column for {', '.join(expressions.missing)} (left at 0)")
-    rig = HeadNeckModel.from_config(cfg.rig)
-    animation = animate(cfg, expressions, rig)
+    if cfg.head2neck:  # the rig it was trained with, unless rig= says otherwise
+        neck_model, rig = load_head2neck(cfg.head2neck, cfg.rig)
+    else:
+        neck_model, rig = None, HeadNeckModel.from_config(cfg.rig)
+    animation = animate(cfg, expressions, rig, neck_model)
     if cfg.out:
         write_tau_track(cfg.out, TauTrack(animation.tau, animation.time, animation.fps, str(cfg.expressions)))
         print(f"{cfg.out}: tau for {len(animation.tau)} frames at {animation.fps:g} fps "

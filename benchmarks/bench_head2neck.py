@@ -3,7 +3,7 @@
     python benchmarks/bench_head2neck.py [--checkpoint last.pt] [--frames 65536] [--threads 2] [--train]
 
 Inference: ``models.head2neck.predict_theta`` (the 2x512 MLP, then the exact correction with its
-default two Gauss-Newton steps) on head orientations of the anatomical prior, in frames per second
+at most three Gauss-Newton steps) on head orientations of the anatomical prior, in frames per second
 (target >= 50,000 with 2 threads); the head orientation error and limits are checked on the output.
 Without a checkpoint the MLP has random weights of the default size (the speed does not depend on
 them).  ``--train`` runs ``python train.py task=head2neck`` with the default configuration (built-in
@@ -30,7 +30,7 @@ sys.path.insert(0, str(REPO))
 
 from data.cervical_prior import head_rotations, sample_sequences  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
-from models.head2neck import build_model, head_error_deg, predict_theta, rest_rotations  # noqa: E402
+from models.head2neck import build_model, head_error_deg, predict_theta  # noqa: E402
 from models.joint_limits import within_limits  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
 from timing import frames_per_second  # noqa: E402
@@ -41,7 +41,8 @@ def inference(args) -> None:
     if args.checkpoint:
         model, _ = load_model(args.checkpoint, task="head2neck")
     else:
-        model = build_model({"rest_rotations": rest_rotations(rig).tolist()}).eval()
+        model = build_model({"rest_rotations": rig.anatomical_rest_rotations.tolist(), "hidden": [512, 512],
+                             "activation": "silu", "residual_scale": 0.1}).eval()
         torch.nn.init.normal_(model.mlp[-1].weight, std=0.01, generator=torch.Generator().manual_seed(0))
     sequences = sample_sequences(args.frames // 120 + 1, seed=123)
     head = head_rotations(rig, sequences.theta)[:].reshape(-1, 3, 3)[: args.frames].contiguous()
@@ -51,9 +52,9 @@ def inference(args) -> None:
         print(f"inference, {threads} thread(s): {wall:,.0f} frames/s wall clock, {cpu:,.0f} frames per CPU "
               f"second ({len(head)} frames per call; MLP hidden {[m.out_features for m in model.mlp[:-1:2]]} "
               f"+ correction)")
-    theta = predict_theta(model, rig, head)
+    theta = rig.to_anatomical(predict_theta(model, rig, head))
     print(f"head orientation error: max {float(head_error_deg(theta, head, rig).max()):.2e} deg; "
-          f"joints inside the limits: {float(within_limits(rig.to_anatomical(theta)).float().mean()):.4f}")
+          f"joints inside the limits: {float(within_limits(theta).float().mean()):.4f}")
 
 
 def training(args) -> None:

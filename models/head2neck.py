@@ -12,14 +12,14 @@ contributes the world rotation vector ``C_j theta_j`` when the joints rotate
 about one axis.
 
 Baselines (``split_head_rotation``): the head's rotation vector ``v = log(H)``
-expressed in each bone frame, ``C_j^T v``, is split per bone axis by shares
-that sum to 1 over the joints: ``theta_j = s_j * (C_j^T v)`` (component-wise).
+expressed in each joint's anatomical frame, ``C_j^T v``, is split per axis by
+shares that sum to 1 over the joints: ``theta_j = s_j * (C_j^T v)`` (component-wise).
 - *uniform*: ``s_j = 1/8`` on every axis.  Every joint then rotates by
   ``v / 8`` in the world, so the chain reproduces H exactly.
-- *rom*: each joint's share of the chain's range of motion on that bone axis
-  (``models.joint_limits.RANGES_DEG``: flexion or extension by the sign of the
-  x component, axial rotation for y, lateral bending for z).  The bone axes of
-  different joints are not parallel, so the chain reproduces H only
+- *rom*: each joint's share of the chain's range of motion on that axis
+  (``models.joint_limits.range_of_motion_shares``: flexion or extension by the
+  sign of the x component, axial rotation for y, lateral bending for z).  The
+  joint frames are not parallel, so the chain reproduces H only
   approximately; :func:`correct_to_head` makes it exact.
 
 Model (:class:`Head2NeckMLP`): an MLP (2 hidden layers of 512 by default) on
@@ -30,9 +30,9 @@ the last layer starts at zero, so an untrained model is the ROM baseline.
 Correction (:func:`correct_to_head`), making the chain reproduce H: damped
 Gauss-Newton steps on the residual rotation ``rho = log(H H(theta)^T)`` (world
 frame), taken on the joints' Euler angles ``e_j`` (the angles the limits are
-written in, so keeping them is a clamp).  A change ``de_j`` turns bone j by
+written in, so keeping them is a clamp).  A change ``de_j`` turns joint j by
 ``E_j de_j`` in its parent-side frame (``E_j``: Euler-rate axes) and the head
-by ``M_j E_j de_j``, with ``M_j`` bone j's posed world frame before its own
+by ``M_j E_j de_j``, with ``M_j`` joint j's posed world frame before its own
 rotation; so ``rho = J de`` with J ``[3, 3*8]``.  The step is the weighted
 minimum-norm solution ``de = W J^T (J W J^T + damping I)^-1 rho``, W the
 remaining range of each Euler angle in the direction the step moves it (the
@@ -43,8 +43,8 @@ clamped into the limits after each step.  From the MLP's output (residual
 two steps; the loop stops once every residual is below ``tolerance_deg``.  A
 target outside the chain's range keeps the residual the limits impose
 (:func:`head_error_deg` reports it).  The chain's head orientation is computed
-in quaternions (:func:`head_chain`), the same quantity as
-``HeadNeckModel.head_rotation`` without the translations.
+in quaternions (:func:`head_chain`, :func:`chain_head_rotation`), the same
+quantity as ``HeadNeckModel.head_rotation`` without the translations.
 """
 from __future__ import annotations
 
@@ -54,10 +54,11 @@ from typing import Sequence
 import torch
 from torch import nn
 
+from data.io import InputError
 from models.joint_limits import euler_limits, range_of_motion_shares
-from models.rotations import (axis_angle_to_euler, euler_to_axis_angle, euler_to_quaternion, matrix_to_axis_angle,
-                              matrix_to_quaternion, matrix_to_rot6d, quaternion_multiply, quaternion_to_axis_angle,
-                              quaternion_to_matrix, relative_angle)
+from models.rotations import (axis_angle_to_euler, axis_angle_to_quaternion, euler_to_axis_angle, euler_to_quaternion,
+                              matrix_to_axis_angle, matrix_to_quaternion, matrix_to_rot6d, quaternion_multiply,
+                              quaternion_to_axis_angle, quaternion_to_matrix, relative_angle)
 
 SPLITS = ("uniform", "rom")
 # In place where torch offers it: the same values and gradients, and ~1.4x faster inference on CPU
@@ -69,25 +70,20 @@ ACTIVATIONS = {"silu": lambda: nn.SiLU(inplace=True), "relu": lambda: nn.ReLU(in
 # ----------------------------------------------------------------------------- baselines
 
 
-def rest_rotations(rig) -> torch.Tensor:
-    """Rest world rotations C_j [J,3,3] of the anatomical joint frames of a ``HeadNeckModel``."""
-    return rig.anatomical_rest_rotations.detach().clone()
-
-
 def split_head_rotation(head_rotations: torch.Tensor, rest: torch.Tensor, split: str) -> torch.Tensor:
-    """Analytic baseline: the head's rotation vector split over the joints by shares per bone axis.
+    """Analytic baseline: the head's rotation vector split over the joints by shares per axis.
 
-    head_rotations [B,3,3], rest [J,3,3] (C_j) -> theta [B,J,3].  ``split``: "uniform" or "rom".
+    head_rotations [B,3,3], rest [J,3,3] (C_j, ``rig.anatomical_rest_rotations``) -> anatomical
+    theta [B,J,3].  ``split``: "uniform" or "rom".
     """
     if split not in SPLITS:
         raise ValueError(f"unknown split '{split}', expected one of {', '.join(SPLITS)}")
-    v = matrix_to_axis_angle(head_rotations)                             # [B,3] world
-    in_bones = torch.einsum("jkc,bk->bjc", rest.to(v), v)               # C_j^T v  [B,J,3]
-    joints = rest.shape[0]
+    v = matrix_to_axis_angle(head_rotations)                                   # [B,3] world
+    in_joint_frames = torch.einsum("jkc,bk->bjc", rest.to(v), v)              # C_j^T v  [B,J,3]
     if split == "uniform":
-        return in_bones / joints
-    positive, negative = (s.to(v) for s in range_of_motion_shares())
-    return in_bones * torch.where(in_bones >= 0, positive, negative)
+        return in_joint_frames / rest.shape[0]
+    positive, negative = range_of_motion_shares()
+    return in_joint_frames * torch.where(in_joint_frames >= 0, positive.to(v), negative.to(v))
 
 
 # ----------------------------------------------------------------------------- the MLP
@@ -101,7 +97,9 @@ class Head2NeckMLP(nn.Module):
         super().__init__()
         if activation not in ACTIVATIONS:
             raise ValueError(f"unknown activation '{activation}', expected one of {', '.join(ACTIVATIONS)}")
-        self.register_buffer("rest", torch.as_tensor(rest, dtype=torch.float32).reshape(-1, 3, 3).clone())
+        # Rebuilt from model_config by build_model, so not saved twice in a checkpoint.
+        self.register_buffer("rest", torch.as_tensor(rest, dtype=torch.float32).reshape(-1, 3, 3).clone(),
+                             persistent=False)
         self.num_joints = self.rest.shape[0]
         self.residual_scale = float(residual_scale)
         layers: list[nn.Module] = []
@@ -120,13 +118,19 @@ class Head2NeckMLP(nn.Module):
         return base + self.residual_scale * residual
 
 
+MODEL_KEYS = ("rest_rotations", "hidden", "activation", "residual_scale")
+
+
 def build_model(model_config: dict) -> Head2NeckMLP:
-    """``model_config``: rest_rotations ([J][3][3] nested list, the rig's C_j), hidden, activation,
-    residual_scale."""
+    """``model_config``: rest_rotations ([J][3][3] nested list, the rig's anatomical C_j), hidden,
+    activation, residual_scale (configs/model/head2neck.yaml); missing or unknown keys are an error."""
+    missing = [k for k in MODEL_KEYS if k not in model_config]
+    unknown = sorted(set(model_config) - set(MODEL_KEYS))
+    if missing or unknown:
+        raise ValueError(f"head2neck model config: missing {missing}, unknown {unknown}; expected {list(MODEL_KEYS)}")
     return Head2NeckMLP(torch.tensor(model_config["rest_rotations"], dtype=torch.float32),
-                        hidden=tuple(model_config.get("hidden", (512, 512))),
-                        activation=model_config.get("activation", "silu"),
-                        residual_scale=float(model_config.get("residual_scale", 0.1)))
+                        hidden=tuple(model_config["hidden"]), activation=model_config["activation"],
+                        residual_scale=float(model_config["residual_scale"]))
 
 
 # ----------------------------------------------------------------------------- kinematics and correction
@@ -156,7 +160,8 @@ def head_chain(rotations: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tenso
     rotations [B,K,4] (R_j of the head's ancestors, root first), rest [K,4] (their C_j) ->
     (head orientation [B,4], frames [B,K,4]).  With Q_j = Q_parent(j) C_j R_j C_j^T the head
     orientation is Q_oc1 (the definition of ``HeadNeckModel.head_rotation``: translations do not
-    affect it) and frame M_j = Q_parent(j) C_j is bone j's posed world frame before its own rotation.
+    affect it) and frame M_j = Q_parent(j) C_j is joint j's posed (anatomical) world frame before its
+    own rotation.
     """
     sandwich, right = product_matrices(rest)
     world = torch.einsum("kij,bkj->bki", sandwich, rotations)                         # C_j R_j C_j^T
@@ -165,6 +170,14 @@ def head_chain(rotations: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tenso
     for k in range(world.shape[1]):
         prefix.append(quaternion_multiply(prefix[-1], world[:, k]))
     return prefix[-1], torch.einsum("kij,bkj->bki", right, torch.stack(prefix[:-1], dim=1))
+
+
+def chain_head_rotation(theta: torch.Tensor, rig) -> torch.Tensor:
+    """Head orientation [B,3,3] of anatomical theta [B,J,3]: ``rig.head_rotation(rig.from_anatomical(theta))``
+    by :func:`head_chain` (rotations only, ~5x cheaper; differentiable)."""
+    chain = chain_to(rig.parents, len(rig.parents) - 1)
+    rest = matrix_to_quaternion(rig.anatomical_rest_rotations[chain].to(theta))
+    return quaternion_to_matrix(head_chain(axis_angle_to_quaternion(theta[:, chain]), rest)[0])
 
 
 def euler_rate_axes(euler: torch.Tensor) -> torch.Tensor:
@@ -185,8 +198,8 @@ def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iter
     """Spread the residual between the chain's head orientation and the target over the joints.
 
     theta [B,J,3] (anatomical frames), head_rotations [B,3,3] (target) -> theta [B,J,3] (anatomical
-    frames) inside the joint limits (``margin``
-    scales them) whose head orientation matches the target (see the module docstring).  At most
+    frames) inside the joint limits (``margin`` scales them) whose head orientation matches the target
+    (see the module docstring).  At most
     ``iterations`` steps, fewer once every residual is below ``tolerance_deg``.  The steps are taken on
     the joints' Euler angles, so the limits are a clamp: with E_j the Euler-rate axes
     (:func:`euler_rate_axes`) the Jacobian of the head's world rotation vector is ``M_j E_j``.
@@ -194,11 +207,11 @@ def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iter
     dtype = theta.dtype
     lower, upper = (x.to(dtype) for x in euler_limits(margin))
     chain = chain_to(rig.parents, len(rig.parents) - 1)
-    rest = matrix_to_quaternion(rest_rotations(rig)[chain].to(dtype))
+    rest = matrix_to_quaternion(rig.anatomical_rest_rotations[chain].to(dtype))
     lower, upper = lower[chain], upper[chain]
     target_inverse = matrix_to_quaternion(head_rotations.to(dtype).transpose(-1, -2))
     euler = axis_angle_to_euler(theta)
-    chain_euler = torch.maximum(torch.minimum(euler[:, chain], upper), lower)
+    chain_euler = torch.clamp(euler[:, chain], lower, upper)
     eye = damping * torch.eye(3, dtype=dtype)
     tolerance = math.radians(tolerance_deg)
     for step in range(iterations + 1):
@@ -213,24 +226,25 @@ def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iter
         normal = torch.einsum("bkic,bkc,bkjc->bij", jacobian, weight, jacobian) + eye
         multiplier = torch.linalg.solve(normal, rho.unsqueeze(-1)).squeeze(-1)
         update = weight * torch.einsum("bkic,bi->bkc", jacobian, multiplier)            # W J^T lambda
-        chain_euler = torch.maximum(torch.minimum(chain_euler + update, upper), lower)
+        chain_euler = torch.clamp(chain_euler + update, lower, upper)
     euler = euler.clone()
     euler[:, chain] = chain_euler
     return euler_to_axis_angle(euler)
 
 
 def head_error_deg(theta: torch.Tensor, head_rotations: torch.Tensor, rig) -> torch.Tensor:
-    """Angle (degrees) between the head orientation of bone-frame theta (``rig.head_rotation``) and the
-    target.  -> [B]."""
-    head = rig.head_rotation(theta)
+    """Angle (degrees) between the head orientation of anatomical theta [B,J,3] (``rig.head_rotation``,
+    the full forward kinematics) and the target [B,3,3].  -> [B]."""
+    head = rig.head_rotation(rig.from_anatomical(theta))
     return torch.rad2deg(relative_angle(head, head_rotations.to(head)))
 
 
 def check_rig(model: Head2NeckMLP, rig, tolerance: float = 1e-4) -> None:
-    """Raise ValueError if ``rig``'s bone rest frames differ from those the model was trained with."""
-    if model.rest.shape != (rig.num_joints, 3, 3) or (model.rest - rest_rotations(rig)).abs().max() > tolerance:
-        raise ValueError("the rig's bone rest frames differ from the model's (trained on another rig?); "
-                         "pass the rig it was trained with")
+    """InputError if ``rig``'s joint rest frames differ from those the model was trained with."""
+    rest = rig.anatomical_rest_rotations
+    if model.rest.shape != rest.shape or (model.rest - rest).abs().max() > tolerance:
+        raise InputError("the rig's joint rest frames differ from the head2neck model's (trained on another "
+                         "rig?); pass the rig it was trained with (rig=...)")
 
 
 @torch.no_grad()
@@ -241,6 +255,6 @@ def predict_theta(model: Head2NeckMLP, rig, head_rotations: torch.Tensor, iterat
     check_rig(model, rig)
     head_rotations = torch.as_tensor(head_rotations, dtype=torch.float32)
     if head_rotations.ndim != 3 or head_rotations.shape[1:] != (3, 3):
-        raise ValueError(f"head_rotations has shape {list(head_rotations.shape)}, expected [T,3,3]")
+        raise InputError(f"head_rotations has shape {list(head_rotations.shape)}, expected [T,3,3]")
     out = [correct_to_head(model(part), part, rig, iterations) for part in head_rotations.split(chunk)]
     return rig.from_anatomical(torch.cat(out)) if out else head_rotations.new_zeros(0, model.num_joints, 3)

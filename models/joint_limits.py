@@ -57,13 +57,13 @@ def euler_limits(margin: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.tensor(lower, dtype=torch.float32), torch.tensor(upper, dtype=torch.float32)
 
 
-def range_of_motion_shares(dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+def range_of_motion_shares() -> tuple[torch.Tensor, torch.Tensor]:
     """Each joint's share of the chain's range per Euler axis (ax, ay, az), for positive and negative
     motion: [J,3] each, columns summing to 1.
 
     Positive: flexion, axial rotation, lateral bending; negative: extension, axial, lateral.
     """
-    flexion, extension, lateral, axial = torch.tensor(RANGES_DEG, dtype=dtype).T
+    flexion, extension, lateral, axial = torch.tensor(RANGES_DEG, dtype=torch.float32).T
     positive = torch.stack([flexion, axial, lateral], dim=1)
     negative = torch.stack([extension, axial, lateral], dim=1)
     return positive / positive.sum(0), negative / negative.sum(0)
@@ -94,7 +94,7 @@ def clamp_to_limits(theta: torch.Tensor, margin: float = 1.0) -> torch.Tensor:
     """Clamp each joint's Euler angles into its limits.  theta [B,J,3] (anatomical frames) -> [B,J,3]."""
     lower, upper = (x.to(theta) for x in euler_limits(margin))
     euler = axis_angle_to_euler(theta)
-    return euler_to_axis_angle(torch.maximum(torch.minimum(euler, upper), lower))
+    return euler_to_axis_angle(torch.clamp(euler, lower, upper))
 
 
 def within_limits(theta: torch.Tensor, margin: float = 1.0, tolerance: float = 1e-4) -> torch.Tensor:

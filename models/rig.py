@@ -7,9 +7,8 @@ Conventions (the project's, owned here):
 - theta ``[B,J,3]``: axis-angle radians per joint, the rotation of each bone in
   its own rest frame (the frame its rest transform places relative to its
   parent).  Joints run root to head: c7t1, c6c7, c5c6, c4c5, c3c4, c2c3, c1c2,
-  oc1.  In a bone frame x is lateral (to the subject's left), y runs along
-  the bone (up the neck), z points forward: +x rotation is flexion, +y axial
-  rotation towards the subject's left, +z lateral bending to the right.
+  oc1.  This is the release's layout; what each axis means anatomically is
+  given by the joint's anatomical frame (below).
 - psi ``[B,E]``: expression blendshape weights (E = 55, ``expression_names``).
 - tau ``[B]``: vertical slide of the larynx in UV units of the larynx map,
   positive = up the neck (the map is sampled at image row ``(1 - v) + tau``).
@@ -23,7 +22,8 @@ Conventions (the project's, owned here):
 - Anatomical joint frames: a bone's own axes need not be anatomical (the
   release's oc1 bone points into the face, so its y axis is forward).  Each
   joint's anatomical frame (x lateral to the subject's left, y up the spine,
-  z forward) is its bone frame turned by the quarter-turn rotation that best
+  z forward; so +x rotation is flexion, +y axial rotation towards the
+  subject's left, +z lateral bending to the right) is its bone frame turned by the quarter-turn rotation that best
   aligns it with the world axes at rest (``anatomical_axes`` [J,3,3], the
   anatomical axes as columns in bone coordinates).  Joint limits and priors
   (``models.joint_limits``) speak anatomical frames: convert with

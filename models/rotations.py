@@ -9,8 +9,8 @@ Conventions owned here:
   Representations in Neural Networks", CVPR 2019).
 - Euler angles ``[..., 3]`` as ``(ax, ay, az)`` about x, y and z of the frame
   the rotation acts in, composed ``R = Rz(az) @ Ry(ay) @ Rx(ax)``.  In a
-  cervical bone frame (x lateral to the subject's left, y along the bone, z
-  forward) ``ax`` is flexion (+) / extension (-), ``ay`` axial rotation
+  joint's anatomical frame (``HeadNeckModel.to_anatomical``: x lateral to the
+  subject's left, y up the spine, z forward) ``ax`` is flexion (+) / extension (-), ``ay`` axial rotation
   (+ = towards the subject's left) and ``az`` lateral bending (+ = towards the
   subject's right); ``ay`` stays far from the +-90 degree singularity in any
   physiological pose.
@@ -111,6 +111,17 @@ def axis_angle_to_euler(axis_angle: torch.Tensor) -> torch.Tensor:
 
 def euler_to_axis_angle(euler: torch.Tensor) -> torch.Tensor:
     return quaternion_to_axis_angle(euler_to_quaternion(euler))
+
+
+def ypr_to_matrix(ypr: torch.Tensor) -> torch.Tensor:
+    """Head yaw, pitch, roll [...,3] radians -> [...,3,3] ``Ry(yaw) @ Rx(pitch) @ Rz(roll)`` (intrinsic: yaw,
+    then pitch, then roll; in the rig's frame + yaw turns the face to the subject's left, + pitch looks
+    down, + roll tilts towards the right shoulder; ``motion.head2neck`` maps tracker angles onto it)."""
+    zero = torch.zeros_like(ypr[..., 0])
+    yaw = axis_angle_to_matrix(torch.stack([zero, ypr[..., 0], zero], -1))
+    pitch = axis_angle_to_matrix(torch.stack([ypr[..., 1], zero, zero], -1))
+    roll = axis_angle_to_matrix(torch.stack([zero, zero, ypr[..., 2]], -1))
+    return yaw @ pitch @ roll
 
 
 def relative_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,7 @@ Inputs (``input_format=auto`` picks by suffix and shape):
 - ``csv``: an expression capture read by ``data.expressions.read_expressions`` with ``HeadYaw,
   HeadPitch, HeadRoll`` columns (its ``head_ypr``).
 
-Yaw/pitch/roll convention (owned here), in the rig's world frame::
+Yaw/pitch/roll convention (``models.rotations.ypr_to_matrix``), in the rig's world frame::
 
     R = Ry(yaw) @ Rx(pitch) @ Rz(roll)        (intrinsic: yaw, then pitch, then roll)
 
@@ -58,19 +58,10 @@ from models.checkpoint import load_model
 from models.head2neck import head_error_deg, predict_theta
 from models.joint_limits import within_limits
 from models.rig import HeadNeckModel
-from models.rotations import axis_angle_to_matrix
+from models.rotations import ypr_to_matrix
 
 INPUT_FORMATS = ("auto", "matrix", "ypr", "csv")
 UNITS = {"rad": 1.0, "deg": np.pi / 180.0, "halfturn": np.pi}
-
-
-def ypr_to_matrix(ypr: torch.Tensor) -> torch.Tensor:
-    """Yaw, pitch, roll [...,3] radians -> head orientations [...,3,3], ``Ry(yaw) Rx(pitch) Rz(roll)``."""
-    zero = torch.zeros_like(ypr[..., 0])
-    yaw = axis_angle_to_matrix(torch.stack([zero, ypr[..., 0], zero], -1))
-    pitch = axis_angle_to_matrix(torch.stack([ypr[..., 1], zero, zero], -1))
-    roll = axis_angle_to_matrix(torch.stack([zero, zero, ypr[..., 2]], -1))
-    return yaw @ pitch @ roll
 
 
 def check_rotations(matrices: np.ndarray, path: Path, tolerance: float = 1e-3) -> None:
@@ -84,6 +75,18 @@ def check_rotations(matrices: np.ndarray, path: Path, tolerance: float = 1e-3) -
                          f"expected head orientations [T,3,3]")
 
 
+def head_rotations_from_ypr(ypr: np.ndarray, units: str = "rad", signs: tuple[float, float, float] = (1.0, 1.0, 1.0),
+                           label: str = "yaw/pitch/roll") -> torch.Tensor:
+    """Head orientations [T,3,3] (float32) from yaw, pitch, roll [T,3] in ``units``, times ``signs``."""
+    if units not in UNITS:
+        raise InputError(f"units={units}: expected one of {', '.join(UNITS)}")
+    radians = np.asarray(ypr, dtype=np.float64) * UNITS[units] * np.asarray(signs, dtype=np.float64)
+    if len(radians) and np.abs(radians).max() > np.pi + 1e-6:
+        raise InputError(f"{label}: angles up to {np.abs(radians).max():.3g} rad after units={units}; "
+                         f"expected at most pi (wrong units?)")
+    return ypr_to_matrix(torch.tensor(radians, dtype=torch.float32))
+
+
 def read_head_rotations(path: str | Path, input_format: str = "auto", units: str = "rad",
                         signs: tuple[float, float, float] = (1.0, 1.0, 1.0), fps: float | None = None
                         ) -> tuple[torch.Tensor, str]:
@@ -91,39 +94,34 @@ def read_head_rotations(path: str | Path, input_format: str = "auto", units: str
     path = Path(path)
     if input_format not in INPUT_FORMATS:
         raise InputError(f"input_format={input_format}: expected one of {', '.join(INPUT_FORMATS)}")
-    if units not in UNITS:
-        raise InputError(f"units={units}: expected one of {', '.join(UNITS)}")
-    if input_format == "auto":
-        if path.suffix.lower() == ".csv":
-            input_format = "csv"
-        elif path.suffix.lower() == ".npy":
-            array = load_npy(path, (2, 3), "head orientations [T,3,3] or yaw/pitch/roll [T,3]")
-            input_format = "matrix" if array.ndim == 3 else "ypr"
-        else:
-            raise InputError(f"{path}: unsupported input '{path.suffix}', expected .npy ([T,3,3] or [T,3]) or .csv")
-    if input_format == "matrix":
-        matrices = load_npy(path, 3, "head orientations [T,3,3]")
-        if matrices.shape[1:] != (3, 3):
-            raise InputError(f"{path}: array of shape {matrices.shape}, expected head orientations [T,3,3]")
-        check_rotations(matrices, path)
-        return torch.tensor(matrices, dtype=torch.float32), f"{len(matrices)} head orientations"
-    if input_format == "ypr":
-        ypr = load_npy(path, 2, f"yaw, pitch, roll [T,3] in {units}")
-        if ypr.shape[1] != 3:
-            raise InputError(f"{path}: array of shape {ypr.shape}, expected yaw, pitch, roll [T,3] in {units}")
-        description = f"{len(ypr)} yaw/pitch/roll frames"
-    else:
+    if input_format == "auto" and path.suffix.lower() not in (".csv", ".npy"):
+        raise InputError(f"{path}: unsupported input '{path.suffix}', expected .npy ([T,3,3] or [T,3]) or .csv")
+    if input_format == "csv" or (input_format == "auto" and path.suffix.lower() == ".csv"):
         track = read_expressions(path, fps=fps)
         if track.head_ypr is None:
             raise InputError(f"{path}: no head rotation recorded (HeadYaw, HeadPitch, HeadRoll missing or all "
                              f"zero); expected a capture with head rotation")
-        ypr = track.head_ypr
-        description = f"{len(ypr)} frames of HeadYaw/HeadPitch/HeadRoll at {track.fps:g} fps"
-    radians = np.asarray(ypr, dtype=np.float64) * UNITS[units] * np.asarray(signs, dtype=np.float64)
-    if np.abs(radians).max() > np.pi + 1e-6:
-        raise InputError(f"{path}: angles up to {np.abs(radians).max():.3g} rad after units={units}; "
-                         f"expected at most pi (wrong units?)")
-    return ypr_to_matrix(torch.tensor(radians, dtype=torch.float32)), description
+        description = f"{len(track)} frames of HeadYaw/HeadPitch/HeadRoll at {track.fps:g} fps"
+        return head_rotations_from_ypr(track.head_ypr, units, signs, str(path)), description
+    array = load_npy(path, (2, 3), "head orientations [T,3,3] or yaw/pitch/roll [T,3]")
+    if input_format == "auto":
+        input_format = "matrix" if array.ndim == 3 else "ypr"
+    if input_format == "matrix":
+        if array.ndim != 3 or array.shape[1:] != (3, 3):
+            raise InputError(f"{path}: array of shape {array.shape}, expected head orientations [T,3,3]")
+        check_rotations(array, path)
+        return torch.tensor(array, dtype=torch.float32), f"{len(array)} head orientations"
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InputError(f"{path}: array of shape {array.shape}, expected yaw, pitch, roll [T,3] in {units}")
+    return head_rotations_from_ypr(array, units, signs, str(path)), f"{len(array)} yaw/pitch/roll frames"
+
+
+def load_head2neck(checkpoint: str | Path, rig_path: str | Path | None = None) -> tuple[torch.nn.Module, HeadNeckModel]:
+    """A head2neck model and its rig: ``rig_path``, or the rig the checkpoint was trained with."""
+    model, state = load_model(checkpoint, task="head2neck")
+    if rig_path is None:
+        rig_path = state.get("config", {}).get("rig")
+    return model, HeadNeckModel.from_config(rig_path)
 
 
 def recentered(head: torch.Tensor) -> torch.Tensor:
@@ -139,16 +137,15 @@ def run(cfg: DictConfig) -> np.ndarray:
         if cfg.get(key) in (None, "", "???"):
             raise InputError(f"missing {key}=...; usage: python -m motion.head2neck checkpoint=last.pt "
                              f"input=rotations.npy out=theta.npy")
-    model, state = load_model(cfg.checkpoint, task="head2neck")
-    rig_path = cfg.rig if cfg.rig is not None else state.get("config", {}).get("rig")
-    rig = HeadNeckModel.from_config(rig_path)
+    model, rig = load_head2neck(cfg.checkpoint, cfg.rig)
     signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
     head, description = read_head_rotations(cfg.input, cfg.input_format, cfg.units, signs, cfg.fps)
     if cfg.recenter:
         head = recentered(head)
     theta = predict_theta(model, rig, head, int(cfg.iterations))
-    error = head_error_deg(theta, head, rig)
-    outside = ~within_limits(rig.to_anatomical(theta))
+    anatomical = rig.to_anatomical(theta)
+    error = head_error_deg(anatomical, head, rig)
+    outside = ~within_limits(anatomical)
     save_npy(cfg.out, theta.numpy().astype(np.float32))
     print(f"{cfg.input}: {description} -> {cfg.out} theta {list(theta.shape)}")
     print(f"head orientation residual: max {float(error.max()):.4f} deg, mean {float(error.mean()):.5f} deg")

@@ -31,8 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from data.cervical_prior import PriorConfig, head_rotations, load_theta_sequences, sample_sequences
 from data.io import InputError
-from models.head2neck import (build_model, correct_to_head, head_error_deg, rest_rotations,
-                              split_head_rotation)
+from models.head2neck import build_model, chain_head_rotation, correct_to_head, head_error_deg, split_head_rotation
 from models.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
 from models.rig import HeadNeckModel
 from models.rotations import axis_angle_to_matrix, relative_angle
@@ -71,13 +70,13 @@ class Task:
     def __init__(self, cfg: DictConfig):
         self.cfg = cfg
         self.rig = HeadNeckModel.from_config(cfg.rig)
-        self.rig.requires_grad_(False)
         self._model_config = {**OmegaConf.to_container(cfg.model, resolve=True),
-                              "rest_rotations": rest_rotations(self.rig).tolist()}
+                              "rest_rotations": self.rig.anatomical_rest_rotations.tolist()}
         self.model = build_model(self._model_config)
         train, val, self.val_description = self._sequences(cfg.data)
         self.train = self._frames(np.concatenate(train))
         self.val = self._frames(np.concatenate(val))
+        self._baselines: dict | None = None
 
     # ------------------------------------------------------------------ data
 
@@ -98,10 +97,10 @@ class Task:
 
     def _frames(self, theta: np.ndarray) -> dict[str, torch.Tensor]:
         theta = torch.as_tensor(theta, dtype=torch.float32)
-        return {"theta": theta, "rotations": axis_angle_to_matrix(theta), "head": head_rotations(self.rig, theta)}
+        return {"rotations": axis_angle_to_matrix(theta), "head": head_rotations(self.rig, theta)}
 
     def batch(self, step: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        index = torch.randint(len(self.train["theta"]), (int(self.cfg.task.batch_size),), generator=generator)
+        index = torch.randint(len(self.train["head"]), (int(self.cfg.task.batch_size),), generator=generator)
         return {name: value[index] for name, value in self.train.items()}
 
     # ------------------------------------------------------------------ loss
@@ -110,8 +109,7 @@ class Task:
         task = self.cfg.task
         theta = self.model(batch["head"])
         joint = 0.5 * ((axis_angle_to_matrix(theta) - batch["rotations"]) ** 2).sum((-1, -2)).mean()
-        head = self.rig.head_rotation(self.rig.from_anatomical(theta))
-        consistency = 0.5 * ((head - batch["head"]) ** 2).sum((-1, -2)).mean()
+        consistency = 0.5 * ((chain_head_rotation(theta, self.rig) - batch["head"]) ** 2).sum((-1, -2)).mean()
         e_rot = rotation_limit_energy(theta).mean()
         e_sim = adjacent_similarity_energy(theta, self.rig.parents).mean()
         loss = joint + task.lambda_fk * consistency + task.lambda_rot * e_rot + task.lambda_sim * e_sim
@@ -123,21 +121,11 @@ class Task:
 
     @torch.no_grad()
     def evaluate(self, final: bool = False) -> dict[str, float]:
-        head, truth = self.val["head"], self.val["rotations"]
+        head = self.val["head"]
         iterations = int(self.cfg.task.correction_iterations)
-        rest = self.model.rest
         raw = torch.cat([self.model(h) for h in head.split(8192)])
-        methods = {
-            "model": correct_to_head(raw, head, self.rig, iterations),
-            "model_raw": raw,
-            "uniform": correct_to_head(split_head_rotation(head, rest, "uniform"), head, self.rig, iterations),
-            "rom": correct_to_head(split_head_rotation(head, rest, "rom"), head, self.rig, iterations),
-        }
-        rows = {}
-        for name, theta in methods.items():
-            per_joint = torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), truth)).mean(0)
-            head_error = head_error_deg(self.rig.from_anatomical(theta), head, self.rig)
-            rows[name] = (per_joint, float(head_error.max()), float(within_limits(theta).float().mean()))
+        rows = {"model": self._row(correct_to_head(raw, head, self.rig, iterations)), "model_raw": self._row(raw),
+                **self._baseline_rows()}
         per_joint, head_max, inside = rows["model"]
         metrics = {"joint_err_deg": float(per_joint.mean()), "head_err_max_deg": head_max, "within_limits": inside}
         metrics.update({f"joint_err_deg_{n}": float(e) for n, e in zip(self.rig.joint_names, per_joint)})
@@ -148,6 +136,23 @@ class Task:
         if final:
             self._print_table(rows, len(head))
         return metrics
+
+    def _row(self, theta: torch.Tensor) -> tuple[torch.Tensor, float, float]:
+        """(per-joint angular error [J] degrees, max head error degrees, share within limits) on val."""
+        head, truth = self.val["head"], self.val["rotations"]
+        per_joint = torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), truth)).mean(0)
+        return per_joint, float(head_error_deg(theta, head, self.rig).max()), float(within_limits(theta).float().mean())
+
+    def _baseline_rows(self) -> dict[str, tuple]:
+        """The uniform and ROM splits (with the same correction) on val: computed once, they do not learn."""
+        if self._baselines is None:
+            head = self.val["head"]
+            rest = self.rig.anatomical_rest_rotations
+            iterations = int(self.cfg.task.correction_iterations)
+            self._baselines = {split: self._row(correct_to_head(split_head_rotation(head, rest, split), head,
+                                                                self.rig, iterations))
+                               for split in ("uniform", "rom")}
+        return self._baselines
 
     def _print_table(self, rows: dict, frames: int) -> None:
         labels = {"model": "MLP + correction", "model_raw": "MLP (raw output)",

@@ -20,12 +20,12 @@ import train
 from data.cervical_prior import head_rotations, sample_sequences
 from data.io import InputError, save_npy, write_csv
 from models.checkpoint import load_model
-from models.head2neck import (build_model, correct_to_head, head_chain, head_error_deg, predict_theta,
-                              rest_rotations, split_head_rotation)
+from models.head2neck import (build_model, chain_head_rotation, correct_to_head, head_chain, head_error_deg,
+                              predict_theta, split_head_rotation)
 from models.joint_limits import within_limits
-from models.rotations import axis_angle_to_matrix, axis_angle_to_quaternion, matrix_to_quaternion, \
-    quaternion_to_matrix, relative_angle
-from motion.head2neck import read_head_rotations, run, ypr_to_matrix
+from models.rotations import (axis_angle_to_matrix, axis_angle_to_quaternion, matrix_to_quaternion,
+                              quaternion_to_matrix, relative_angle, ypr_to_matrix)
+from motion.head2neck import read_head_rotations, run
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = str(REPO / "configs")
@@ -58,7 +58,7 @@ def tiny_run(tmp_path_factory):
 
 def test_uniform_split_reproduces_the_head_and_rom_split_follows_published_shares(builtin_rig, poses):
     _, head = poses
-    rest = rest_rotations(builtin_rig)
+    rest = builtin_rig.anatomical_rest_rotations
     uniform = split_head_rotation(head, rest, "uniform")
     assert head_error_deg(uniform, head, builtin_rig).max() < 1e-3
     # a pure turn: each joint's axial share of the bone-frame rotation is its share of the published range
@@ -71,14 +71,15 @@ def test_uniform_split_reproduces_the_head_and_rom_split_follows_published_share
 
 def test_quaternion_chain_matches_the_rig(builtin_rig, poses):
     theta, head = poses
-    rest = matrix_to_quaternion(rest_rotations(builtin_rig))
+    rest = matrix_to_quaternion(builtin_rig.anatomical_rest_rotations)
     chain_head, _ = head_chain(axis_angle_to_quaternion(theta[:500]), rest)
     assert torch.allclose(quaternion_to_matrix(chain_head), head[:500], atol=1e-5)
+    assert torch.allclose(chain_head_rotation(theta[:500], builtin_rig), head[:500], atol=1e-5)
 
 
 def test_correction_is_exact_and_inside_the_limits(builtin_rig, poses):
     theta, head = poses
-    rest = rest_rotations(builtin_rig)
+    rest = builtin_rig.anatomical_rest_rotations
     for start in (split_head_rotation(head, rest, "rom"),
                   theta + 0.05 * torch.randn(theta.shape, generator=torch.Generator().manual_seed(0))):
         assert head_error_deg(start, head, builtin_rig).max() > 5.0
@@ -94,14 +95,16 @@ def test_correction_is_exact_and_inside_the_limits(builtin_rig, poses):
 def test_correction_is_exact_on_the_real_rig(real_rig, poses):
     theta = poses[0][:2000]
     head = head_rotations(real_rig, theta)
-    start = split_head_rotation(head, rest_rotations(real_rig), "rom")
+    assert torch.allclose(chain_head_rotation(theta, real_rig), head, atol=1e-5)  # oc1's frame is turned there
+    start = split_head_rotation(head, real_rig.anatomical_rest_rotations, "rom")
     corrected = correct_to_head(start, head, real_rig)
-    assert head_error_deg(real_rig.from_anatomical(corrected), head, real_rig).max() < 0.01
+    assert head_error_deg(corrected, head, real_rig).max() < 0.01
     assert within_limits(corrected).all()
 
 
 def test_predict_theta_refuses_a_model_of_another_rig(builtin_rig, poses):
-    model = build_model({"rest_rotations": torch.eye(3).expand(8, 3, 3).tolist(), "hidden": [8]})
+    model = build_model({"rest_rotations": torch.eye(3).expand(8, 3, 3).tolist(), "hidden": [8],
+                         "activation": "silu", "residual_scale": 0.1})
     with pytest.raises(ValueError, match="rest frames differ"):
         predict_theta(model, builtin_rig, poses[1][:4])
 
@@ -121,7 +124,7 @@ def test_tiny_training_beats_both_baselines_on_new_persons(tiny_run):
 def test_trained_model_generalises_to_fresh_sequences(tiny_run, builtin_rig, poses):
     theta, head = poses
     model, state = load_model(tiny_run[1] / "checkpoints" / "last.pt", task="head2neck")
-    predicted = predict_theta(model, builtin_rig, head)
+    predicted = builtin_rig.to_anatomical(predict_theta(model, builtin_rig, head))  # the prior's frames
     error = torch.rad2deg(relative_angle(axis_angle_to_matrix(predicted), axis_angle_to_matrix(theta))).mean()
     rom = correct_to_head(split_head_rotation(head, model.rest, "rom"), head, builtin_rig)
     rom_error = torch.rad2deg(relative_angle(axis_angle_to_matrix(rom), axis_angle_to_matrix(theta))).mean()
@@ -144,10 +147,11 @@ def test_theta_seq_data_trains_and_holds_out_whole_files(tmp_path, builtin_rig):
                 *extra])
 
     one_file = Task(config(tmp_path / "seq" / "take0.npy"))
-    assert torch.equal(one_file.val["theta"], torch.tensor(sequences.theta[0, 96:]))  # the last 20% of frames
+    last = builtin_rig.to_anatomical(torch.tensor(sequences.theta[0, 96:]))  # the last 20% of frames
+    assert torch.allclose(one_file.val["rotations"], axis_angle_to_matrix(last))
     cfg = config(tmp_path / "seq")
     task = Task(cfg)
-    assert len(task.val["theta"]) == 120 and len(task.train["theta"]) == 4 * 120  # 1 of 5 files held out
+    assert len(task.val["head"]) == 120 and len(task.train["head"]) == 4 * 120  # 1 of 5 files held out
     (tmp_path / "run").mkdir()
     train.fit(cfg, tmp_path / "run")
     model, _ = load_model(tmp_path / "run" / "checkpoints" / "last.pt", task="head2neck")
@@ -157,7 +161,7 @@ def test_theta_seq_data_trains_and_holds_out_whole_files(tmp_path, builtin_rig):
         return torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), truth)).mean()
 
     rom = correct_to_head(split_head_rotation(head, model.rest, "rom"), head, builtin_rig)
-    assert error(predict_theta(model, builtin_rig, head)) < 0.8 * error(rom)  # it learnt the files' poses
+    assert error(builtin_rig.to_anatomical(predict_theta(model, builtin_rig, head))) < 0.8 * error(rom)  # it learnt the files' poses
 
 
 # --------------------------------------------------------------------------- CLI
@@ -188,7 +192,8 @@ def test_cli_round_trip_matrices_ypr_and_capture_csv(tiny_run, builtin_rig, pose
                                    out=tmp_path / "theta_m.npy", threads=1))
     written = np.load(tmp_path / "theta_m.npy")
     assert written.shape == (90, 8, 3) and written.dtype == np.float32 and np.array_equal(written, from_matrices)
-    assert head_error_deg(torch.tensor(written), torch.tensor(head, dtype=torch.float32), builtin_rig).max() < 0.1
+    anatomical = builtin_rig.to_anatomical(torch.tensor(written))
+    assert head_error_deg(anatomical, torch.tensor(head, dtype=torch.float32), builtin_rig).max() < 0.1
 
     ypr = Rotation.from_matrix(head).as_euler("YXZ")  # yaw, pitch, roll of our convention (scipy, independent)
     save_npy(tmp_path / "ypr.npy", np.degrees(ypr))

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from data.io import read_tau_track, write_csv
 from data.synthetic_tau import swallow_profile
 from models.checkpoint import save_checkpoint
-from models.head2neck import build_model, rest_rotations
+from models.head2neck import build_model
 from motion.swallow import SwallowTemplate, write_template
 
 REPO = __import__("pathlib").Path(__file__).resolve().parents[1]
@@ -19,10 +19,11 @@ REPO = __import__("pathlib").Path(__file__).resolve().parents[1]
 
 def test_capture_to_meshes(tmp_path, builtin_rig):
     # An untrained head2neck model is the range-of-motion split; the correction makes it exact.
-    model = build_model({"rest_rotations": rest_rotations(builtin_rig).tolist(), "hidden": [16, 16]})
     head2neck = tmp_path / "h2n.pt"
-    save_checkpoint(head2neck, {"task": "head2neck", "model_config": {"rest_rotations": rest_rotations(
-        builtin_rig).tolist(), "hidden": [16, 16]}, "model": model.state_dict(), "step": 0})
+    config = {"rest_rotations": builtin_rig.anatomical_rest_rotations.tolist(), "hidden": [16, 16],
+              "activation": "silu", "residual_scale": 0.1}
+    save_checkpoint(head2neck, {"task": "head2neck", "model_config": config, "model": build_model(config).state_dict(),
+                                "step": 0})
     time = np.arange(90) / 30.0
     yaw = 0.4 * np.sin(2 * np.pi * time / 3.0)  # head turns left and right, radians
     write_csv(tmp_path / "take.csv", {"time": time, "jawOpen": 0.3 + 0.2 * np.sin(time * 5), "HeadYaw": yaw,
