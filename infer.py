@@ -118,10 +118,6 @@ def write_meshes(folder: str | Path, rig: HeadNeckModel, animation: Animation, e
 
 
 def run(cfg: DictConfig) -> Animation:
-    torch.set_num_threads(int(cfg.threads))
-    if not cfg.expressions:
-        raise InputError("missing expressions=...; usage: python infer.py expressions=take.csv checkpoint=last.pt "
-                         "out=tau.csv")
     if not (cfg.out or cfg.theta_out or cfg.meshes):
         raise InputError("nothing to write: give out=tau.csv, theta_out=theta.npy and/or meshes=folder/")
     expressions = read_expressions(cfg.expressions, fps=cfg.fps)

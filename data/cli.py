@@ -1,8 +1,9 @@
 """The shell every command-line tool shares: hydra config from ``configs/<name>.yaml``, clean errors.
 
 A tool's module ends with ``if __name__ == "__main__": run_cli("<name>", run)``; ``run(cfg)`` does
-the work.  Bad input (``data.io.InputError``) prints ``error: <message>`` on stderr and exits with
-status 2, without a traceback.
+the work.  Required keys are ``???`` in the tool's config.  Bad input (``data.io.InputError``) or a
+missing required key prints ``error: <message>`` on stderr and exits with status 2, without a
+traceback.  A config's ``threads`` key sets torch's thread count.
 """
 from __future__ import annotations
 
@@ -15,12 +16,27 @@ from data.io import InputError
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
+def missing_keys(cfg, keys: tuple[str, ...] | None = None) -> list[str]:
+    """The top-level keys of ``cfg`` (or of ``keys``) still at ``???``."""
+    from omegaconf import OmegaConf
+
+    return [k for k in (keys or cfg.keys()) if OmegaConf.is_missing(cfg, k)]
+
+
 def run_cli(config_name: str, run: Callable) -> None:
     import hydra
 
     @hydra.main(version_base=None, config_path=str(CONFIGS), config_name=config_name)
     def main(cfg) -> None:
         try:
+            missing = missing_keys(cfg)
+            if missing:
+                raise InputError(f"missing {', '.join(f'{k}=...' for k in missing)} "
+                                 f"(see configs/{config_name}.yaml)")
+            if cfg.get("threads"):
+                import torch
+
+                torch.set_num_threads(int(cfg.threads))
             run(cfg)
         except InputError as e:
             print(f"error: {e}", file=sys.stderr)

@@ -131,12 +131,6 @@ def recentered(head: torch.Tensor) -> torch.Tensor:
 
 def run(cfg: DictConfig) -> np.ndarray:
     """The CLI's work: returns theta [T,J,3] and writes it to ``cfg.out``."""
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
-    for key in ("checkpoint", "input", "out"):
-        if cfg.get(key) in (None, "", "???"):
-            raise InputError(f"missing {key}=...; usage: python -m motion.head2neck checkpoint=last.pt "
-                             f"input=rotations.npy out=theta.npy")
     model, rig = load_head2neck(cfg.checkpoint, cfg.rig)
     signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
     head, description = read_head_rotations(cfg.input, cfg.input_format, cfg.units, signs, cfg.fps)

@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
@@ -59,7 +60,19 @@ def test_capture_to_meshes(tmp_path, builtin_rig):
 
 
 def test_nothing_to_write_is_an_error(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    from data.io import InputError
+    from infer import run
+
     write_csv(tmp_path / "take.csv", {"time": np.arange(3) / 30, "jawOpen": np.zeros(3)})
-    result = subprocess.run([sys.executable, "infer.py", f"expressions={tmp_path / 'take.csv'}"],
-                            cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert result.returncode == 2 and "nothing to write" in result.stderr
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base=None):
+        cfg = compose("infer", overrides=[f"expressions={tmp_path / 'take.csv'}"])
+    with pytest.raises(InputError, match="nothing to write"):
+        run(cfg)
+
+
+def test_missing_required_keys_are_named_with_exit_status_2():
+    result = subprocess.run([sys.executable, "-m", "data.pairs", "out=x.npz"], cwd=REPO, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 2 and "error: missing track=..., expressions=... (see configs/pairs.yaml)" in result.stderr
