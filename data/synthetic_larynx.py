@@ -143,8 +143,11 @@ def _band_noise(num_frames: int, fps: float, cutoff: float, rng) -> np.ndarray:
 
 def generate_expressions(num_frames: int, fps: float, params: SubjectParams, rng: np.random.Generator,
                          swallows_per_minute: float = 8.0, blinks_per_minute: float = 15.0,
-                         noise: float = 0.01) -> np.ndarray:
-    """A talking face: psi [T,55] in [0, 1] at ``fps``."""
+                         expression_noise: float = 0.01) -> np.ndarray:
+    """A talking face: psi [T,55] in [0, 1] at ``fps``.
+
+    ``expression_noise`` is the standard deviation of white tracker noise on every weight.
+    """
     time = np.arange(num_frames) / fps
     length = num_frames / fps
     # Phrases and pauses.
@@ -192,7 +195,7 @@ def generate_expressions(num_frames: int, fps: float, params: SubjectParams, rng
         psi[:, INDEX[name]] += slow
         psi[:, INDEX[name[:-1] + "R"]] += slow * rng.uniform(0.8, 1.0)
     psi += params.neutral
-    psi += noise * rng.standard_normal(psi.shape)
+    psi += expression_noise * rng.standard_normal(psi.shape)
     return np.clip(psi, 0.0, 1.0).astype(np.float32)
 
 
@@ -257,19 +260,21 @@ def make_sequence(subject: int, index: int, num_frames: int, fps: float, seed: i
                   tau_noise: float = 0.0005, **expression_options) -> LarynxSequence:
     """Sequence ``index`` of ``subject``: deterministic from (seed, subject, index).
 
-    ``tau_noise`` (tau units) is the standard deviation of white measurement noise on tau, as a tracker adds.
+    ``tau_noise`` (tau units) is the standard deviation of white measurement noise on tau, as a tracker adds;
+    ``expression_options`` go to :func:`generate_expressions` (swallows_per_minute, blinks_per_minute,
+    expression_noise).
     """
     params = subject_params(subject, seed)
     rng = np.random.default_rng([seed, subject, 2, index])
     psi = generate_expressions(num_frames, fps, params, rng, **expression_options)
     tau = larynx_response(psi, fps, params) + tau_noise * rng.standard_normal(num_frames)
-    return LarynxSequence(psi, tau.astype(np.float32), float(fps), subject_name(subject), f"s{subject}_{index}",
-                          float(params.eta))
+    name = subject_name(subject)
+    return LarynxSequence(psi, tau.astype(np.float32), float(fps), name, f"{name}_{index}", float(params.eta))
 
 
 def make_dataset(subjects: Sequence[int], sequences_per_subject: int, seconds: float, fps: float, seed: int,
                  **options) -> list[LarynxSequence]:
-    """``sequences_per_subject`` sequences of ``seconds`` for each subject."""
+    """``sequences_per_subject`` sequences of ``seconds`` for each subject (``options``: see :func:`make_sequence`)."""
     num_frames = int(round(seconds * fps))
     return [make_sequence(s, i, num_frames, fps, seed, **options)
             for s in subjects for i in range(sequences_per_subject)]

@@ -166,10 +166,11 @@ class Block(nn.Module):
         self.ln_self, self.ln_mlp = nn.LayerNorm(d), nn.LayerNorm(d)
         self.qkv = nn.Linear(d, 3 * d)
         self.self_out = nn.Linear(d, d)
-        # With a one-frame cross window the only key is the aligned frame: no query needed.
+        # With a one-frame cross window the only key is the aligned frame: attention returns its value, so
+        # neither a query nor keys are needed and cross_kv projects values only.
         self.ln_cross = nn.LayerNorm(d) if self.cross_window > 1 else None
         self.cross_q = nn.Linear(d, d) if self.cross_window > 1 else None
-        self.cross_kv = nn.Linear(d, 2 * d)
+        self.cross_kv = nn.Linear(d, (2 if self.cross_window > 1 else 1) * d)
         self.cross_out = nn.Linear(d, d)
         self.mlp = nn.Sequential(nn.Linear(d, cfg["d_ff"]), nn.GELU(approximate="tanh"), nn.Linear(cfg["d_ff"], d))
         self.dropout = nn.Dropout(cfg["dropout"])
@@ -187,13 +188,13 @@ class Block(nn.Module):
         q, k, v = map(self.heads, self.qkv(self.ln_self(x)).chunk(3, dim=-1))
         a = banded_attention(q, k, v, self.slopes, self.period, self.window)
         x = x + self.dropout(self.self_out(self.merge(a)))
-        k, v = map(self.heads, self.cross_kv(memory).chunk(2, dim=-1))
         if self.cross_window == 1:
-            a = v  # attention over a single key returns its value
+            a = self.cross_kv(memory)  # attention over a single key returns its value
         else:
             q = self.heads(self.cross_q(self.ln_cross(x)))
-            a = banded_attention(q, k, v, self.slopes, 1, self.cross_window)  # alignment bias: -slope * offset
-        x = x + self.dropout(self.cross_out(self.merge(a)))
+            k, v = map(self.heads, self.cross_kv(memory).chunk(2, dim=-1))
+            a = self.merge(banded_attention(q, k, v, self.slopes, 1, self.cross_window))  # bias: -slope * offset
+        x = x + self.dropout(self.cross_out(a))
         return x + self.dropout(self.mlp(self.ln_mlp(x)))
 
 
@@ -262,9 +263,13 @@ class LarynxTransformer(nn.Module):
         normalised = (previous_tau - self.tau_mean) / self.tau_scale
         return base[:, positions] + normalised[..., None] * self.motion.weight[:, 0]
 
+    def to_tau(self, normalised: Tensor) -> Tensor:
+        """Normalised tau [...] (the network's output) -> tau [...] in UV units."""
+        return self.tau_mean + self.tau_scale * normalised
+
     def _readout(self, x: Tensor) -> Tensor:
         """Hidden states [...,d] -> tau [...] in UV units."""
-        return self.tau_mean + self.tau_scale * self.head(self.ln_out(x))[..., 0]
+        return self.to_tau(self.head(self.ln_out(x))[..., 0])
 
     # ------------------------------------------------------------------ teacher forcing
 
@@ -298,7 +303,7 @@ class LarynxTransformer(nn.Module):
             with single_thread():
                 for t in range(len(cross[0])):
                     out[:, start + t] = stream.advance([frames[t] for frames in cross])
-        return self.tau_mean + self.tau_scale * out
+        return self.to_tau(out)
 
     @torch.no_grad()
     def generate_uncached(self, psi: Tensor, subject: Tensor | None = None, eta: Tensor | None = None) -> Tensor:
@@ -375,7 +380,7 @@ class LarynxStream:
         self.position = 0
         # Attention biases [B*H,window,1] (see attend_one) for offsets window-1, ..., 0: the last n keys
         # (oldest first) take the tail.
-        slopes = alibi_slopes(heads)
+        slopes = model.blocks[0].slopes  # the same in every block
         offsets = torch.arange(model.window - 1, -1, -1)[None, :]
         bias = relative_bias(offsets, slopes, model.period, model.window)[:, 0]
         self.self_bias = bias.repeat(batch_size, 1)[:, :, None].to(dtype)
@@ -400,10 +405,10 @@ class LarynxStream:
         memory, self.conv_history = model.expression(psi, self.conv_history)
         out = []
         for block in model.blocks:
-            k, v = map(block.heads, block.cross_kv(memory).chunk(2, dim=-1))  # [B,H,C,dh]
             if model.cross_window == 1:
-                out.append(list(block.cross_out(block.merge(v)).unbind(1)))
+                out.append(list(block.cross_out(block.cross_kv(memory)).unbind(1)))  # values are the output
             else:
+                k, v = map(block.heads, block.cross_kv(memory).chunk(2, dim=-1))  # [B,H,C,dh]
                 out.append(list(torch.stack([k, v]).unbind(3)))
         return out
 
@@ -439,7 +444,7 @@ class LarynxStream:
         psi_t = torch.as_tensor(psi_t, dtype=self.previous.dtype).reshape(self.batch_size, 1, NUM_EXPRESSIONS)
         with single_thread():
             y = self.advance([frames[0] for frames in self.encode(psi_t)])
-        return self.model.tau_mean + self.model.tau_scale * y
+        return self.model.to_tau(y)
 
 
 def build_model(model_config: dict) -> LarynxTransformer:

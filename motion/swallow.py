@@ -55,8 +55,9 @@ from scipy.ndimage import gaussian_filter1d, median_filter
 from scipy.signal import find_peaks
 
 from data.cli import run_cli
-from data.io import (CsvTable, InputError, TauTrack, figure, read_tau_track, resample_uniform, save_figure,
-                     write_csv, write_tau_track)
+from data.io import (CsvTable, InputError, TauTrack, estimate_fps, figure, read_tau_track, resample_uniform,
+                     save_figure, write_csv, write_tau_track)
+from data.io import _check_increasing  # the tau-track reader's check (names the file and line)
 
 LANDMARK_NAMES: tuple[str, ...] = ("onset", "dip", "peak", "undershoot", "return")
 ONSET, DIP, PEAK, UNDERSHOOT, RETURN = range(5)
@@ -98,7 +99,7 @@ class SwallowConfig:
     max_height_ratio: float = 2.5         # same for peak heights
     min_swallows: int = 1
     # playback
-    fade_seconds: float = 0.2             # raised-cosine cross-fade at both ends of an inserted swallow
+    fade_seconds: float = 0.2             # (> 0) raised-cosine cross-fade at both ends of an inserted swallow
     rest_window_seconds: float = 0.5      # track rest level is the median over this window before/after an insert
     blend: str = "replace"                # replace: cross-fade to rest + template; add: add the template
 
@@ -109,8 +110,9 @@ class SwallowConfig:
             raise ValueError(f"SwallowConfig.rest_point must be 'tangent' or 'band', got '{self.rest_point}'")
         if self.blend not in ("replace", "add"):
             raise ValueError(f"SwallowConfig.blend must be 'replace' or 'add', got '{self.blend}'")
-        if self.template_fps <= 0:
-            raise ValueError(f"SwallowConfig.template_fps must be positive, got {self.template_fps}")
+        for key in ("template_fps", "fade_seconds"):
+            if not getattr(self, key) > 0:
+                raise ValueError(f"SwallowConfig.{key} (swallow.{key}) must be positive, got {getattr(self, key)}")
 
 
 # --------------------------------------------------------------------------- detection
@@ -147,10 +149,6 @@ class SwallowEvent:
     def reason(self) -> str:
         return "; ".join(f"{name}: {why}" for name, why in self.missing.items())
 
-    def describe(self) -> str:
-        marks = ", ".join(f"{n} {t:.3f}" for n, t in zip(LANDMARK_NAMES, self.times) if np.isfinite(t))
-        return f"peak {self.height:.4f} at {self.times[PEAK]:.3f} s ({marks})"
-
 
 @dataclass
 class TrackAnalysis:
@@ -172,12 +170,11 @@ def _smooth(x: np.ndarray, sigma_samples: float) -> np.ndarray:
 
 def _refine_extremum(x: np.ndarray, i: int) -> tuple[float, float]:
     """Sub-sample position and value of an extremum at sample ``i`` by a parabola through 3 samples."""
+    from motion.signal import parabolic_peak
+
     if 0 < i < len(x) - 1:
-        a, b, c = x[i - 1], x[i], x[i + 1]
-        curvature = a - 2 * b + c
-        if curvature != 0:
-            delta = float(np.clip(0.5 * (a - c) / curvature, -0.5, 0.5))
-            return i + delta, float(b - 0.25 * (a - c) * delta)
+        offset, value = parabolic_peak(x[i - 1], x[i], x[i + 1])
+        return i + offset, value
     return float(i), float(x[i])
 
 
@@ -693,19 +690,20 @@ def write_template(path: str | Path, template: SwallowTemplate) -> None:
 
 
 def read_template(path: str | Path) -> SwallowTemplate:
-    """A template written by :func:`write_template` (any tau track CSV; ``std`` optional, else 0)."""
+    """A template written by :func:`write_template`: CSV ``time,tau[,std]`` (``std`` optional, else 0)."""
     path = Path(path)
     if path.suffix.lower() != ".csv":
         raise InputError(f"{path}: a swallow template is a CSV with columns time,tau,std, got '{path.suffix}'")
-    track = read_tau_track(path)
     table = CsvTable(path)
-    std = table.numeric("std") if table.has("std") else np.zeros(len(track))
-    if len(track) < 3:
-        raise InputError(f"{path}: {len(track)} rows, a swallow template needs at least 3")
+    if len(table) < 3:
+        raise InputError(f"{path}: {len(table)} rows, a swallow template needs at least 3")
+    time, tau = table.numeric("time"), table.numeric("tau")
+    _check_increasing(time, table, "time")
+    std = table.numeric("std") if table.has("std") else np.zeros(len(table))
     if (std < 0).any():
         i = int(np.argmax(std < 0))
         raise InputError(f"{path}: column 'std', line {table.lines[i]}: negative ({std[i]:g}), expected >= 0")
-    return SwallowTemplate(track.time, track.tau, std, track.fps, np.array([0.0]), ("onset",))
+    return SwallowTemplate(time, tau, std, estimate_fps(time), np.array([0.0]), ("onset",))
 
 
 def read_tracks(paths: Sequence[str | Path], npy_fps: float | None = None) -> list[TauTrack]:
@@ -767,7 +765,10 @@ def config_from(cfg: DictConfig) -> SwallowConfig:
     unknown = sorted(set(values) - known)
     if unknown:
         raise InputError(f"configs/swallow.yaml: unknown swallow.* keys {unknown}; known: {sorted(known)}")
-    return SwallowConfig(**values)
+    try:
+        return SwallowConfig(**values)
+    except ValueError as e:  # a value out of range: bad input, reported without a traceback
+        raise InputError(f"configs/swallow.yaml: {e}") from None
 
 
 def run_template(cfg: DictConfig) -> TemplateBuild:

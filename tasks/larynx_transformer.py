@@ -38,8 +38,11 @@ def load_sequences(data: DictConfig) -> tuple[list[LarynxSequence], list[LarynxS
         from data.synthetic_larynx import make_dataset, split_subjects
 
         train_ids, heldout_ids = split_subjects(data.train_subjects, data.heldout_subjects)
-        train = make_dataset(train_ids, data.sequences_per_subject, data.seconds, data.fps, data.seed)
-        val = make_dataset(heldout_ids, data.heldout_sequences_per_subject, data.seconds, data.fps, data.seed)
+        options = {"tau_noise": data.tau_noise, "swallows_per_minute": data.swallows_per_minute,
+                   "blinks_per_minute": data.blinks_per_minute, "expression_noise": data.expression_noise}
+        train = make_dataset(train_ids, data.sequences_per_subject, data.seconds, data.fps, data.seed, **options)
+        val = make_dataset(heldout_ids, data.heldout_sequences_per_subject, data.seconds, data.fps, data.seed,
+                           **options)
         return train, val
     if data.kind == "pairs":
         pairs = load_pairs(data.path, data.fps)

@@ -8,6 +8,7 @@ duration scaling, rest offsets and noise, so the truth is the structural mean
 from __future__ import annotations
 
 import dataclasses
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -103,10 +104,13 @@ def test_different_lengths_and_sampling_rates():
 # --------------------------------------------------------------------------- detection
 
 
+SEVERAL_AMPLITUDES = np.array([0.9, 1.1, 0.8, 1.0]) * SWALLOW_AMPLITUDE  # of the swallows in several_swallows()
+
+
 def several_swallows(fps=50.0, seed=0):
     onsets = np.array([1.5, 5.2, 9.0, 14.1])
     durations = np.array([1.0, 1.2, 0.9, 1.1]) * SWALLOW_DURATION
-    amplitudes = np.array([0.9, 1.1, 0.8, 1.0]) * SWALLOW_AMPLITUDE
+    amplitudes = SEVERAL_AMPLITUDES
     time = np.arange(0, 17.0, 1 / fps)
     rng = np.random.default_rng(seed)
     tau = 0.01 + 0.004 * np.sin(2 * np.pi * time / 25.0) + 0.0008 * rng.standard_normal(len(time))
@@ -131,7 +135,7 @@ def test_several_swallows_detected_with_landmarks_near_truth():
         error = np.abs(detected[:, k] - truth[:, k]).max()
         assert error < tolerance[name], f"{name}: max error {error:.3f} s"
     heights = np.array([e.height for e in events])
-    np.testing.assert_allclose(heights, np.array([0.9, 1.1, 0.8, 1.0]) * SWALLOW_AMPLITUDE, rtol=0.06)
+    np.testing.assert_allclose(heights, SEVERAL_AMPLITUDES, rtol=0.06)
 
 
 def test_track_with_several_swallows_gives_a_template_from_all():
@@ -139,6 +143,8 @@ def test_track_with_several_swallows_gives_a_template_from_all():
     build = build_template([TauTrack(tau, time, fps, "several.csv")])
     assert build.clips[0].found == 4 and build.clips[0].used == 4
     assert len(build.events) == 4
+    # The swallows share one shape: registered by their landmarks, their mean peaks at their mean amplitude.
+    assert build.template.peak_height == pytest.approx(SEVERAL_AMPLITUDES.mean(), rel=0.1)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
@@ -292,17 +298,23 @@ def test_cli_round_trip_in_process(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "6 swallow(s) from 6 of 6 clip(s)" in printed and "peak height" in printed and "duration" in printed
 
-    played = tmp_path / "played.csv"
-    track = tmp_path / "c1.csv"
-    run(compose(["mode=play", f"track={track}", f"template={out}", "at=[0.2]", "amplitude_scale=0.5",
+    # Played into a track at rest (a level plus tracker noise), the swallow rises half the template's peak.
+    played, track = tmp_path / "played.csv", tmp_path / "rest.csv"
+    rest_time = np.arange(90) / 30.0
+    rest_tau = 0.01 + 0.0003 * np.random.default_rng(0).standard_normal(len(rest_time))
+    write_tau_track(track, TauTrack(rest_tau, rest_time, 30.0))
+    run(compose(["mode=play", f"track={track}", f"template={out}", "at=[1.0]", "amplitude_scale=0.5",
                  f"out={played}"]))
     before, after = read_tau_track(track), read_tau_track(played)
     np.testing.assert_allclose(after.time, before.time, atol=1e-6)
-    assert after.tau.max() - np.median(after.tau) == pytest.approx(
-        0.5 * build.template.peak_height + 0.0, rel=0.15)
+    assert after.tau.max() - 0.01 == pytest.approx(0.5 * build.template.peak_height, rel=0.05)
+    untouched = before.time < 1.0 + build.template.time[0]  # before the insert's span (its padding included)
+    np.testing.assert_allclose(after.tau[untouched], before.tau[untouched], atol=1e-9)
 
 
 def test_cli_subprocess_and_error_naming_the_file(tmp_path):
+    from motion.swallow import run
+
     clips = warped_swallow_clips(3, seed=22)
     paths = write_clips(tmp_path, clips)[1:]
     out, plot = tmp_path / "t.csv", tmp_path / "t.png"
@@ -312,10 +324,8 @@ def test_cli_subprocess_and_error_naming_the_file(tmp_path):
     assert CsvTable(out).header == ["time", "tau", "std"] and plot.stat().st_size > 20_000
     bad = tmp_path / "bad.csv"
     write_csv(bad, {"time": [0.0, 0.1], "height": [0.0, 0.1]})
-    done = subprocess.run([sys.executable, "-m", "motion.swallow", f"inputs=[{paths[0]},{bad}]", f"out={out}"],
-                          cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 2
-    assert f"{bad}: no column 'tau'" in done.stderr
+    with pytest.raises(InputError, match=re.escape(f"{bad}: no column 'tau'")):
+        run(compose([f"inputs=[{paths[0]},{bad}]", f"out={tmp_path / 'bad_template.csv'}"]))
 
 
 def test_bad_inputs_name_file_and_what_was_expected(tmp_path):
@@ -336,6 +346,10 @@ def test_bad_inputs_name_file_and_what_was_expected(tmp_path):
         run(compose(["mode=play", f"track={bad_number}", f"template={negative}", f"out={tmp_path / 'o.csv'}"]))
     with pytest.raises(InputError, match="unknown swallow.* keys"):
         run(compose([f"inputs=[{bad_number}]", f"out={tmp_path / 'o.csv'}", "+swallow.typo=1"]))
+    with pytest.raises(InputError, match=r"swallow\.fade_seconds\) must be positive, got 0"):
+        run(compose([f"inputs=[{bad_number}]", f"out={tmp_path / 'o.csv'}", "swallow.fade_seconds=0"]))
+    with pytest.raises(ValueError, match=r"SwallowConfig\.fade_seconds .* must be positive, got -0\.1"):
+        SwallowConfig(fade_seconds=-0.1)
 
 
 def test_shift_aligned_error_recovers_a_known_shift():
