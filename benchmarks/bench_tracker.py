@@ -24,6 +24,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -31,7 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from data.normal_sequences import SequenceConfig, head_motion, make_sequence  # noqa: E402
-from data.render import NeckRenderer, cv2, encode_normals, render_normals  # noqa: E402
+from data.render import NeckRenderer, encode_normals, render_normals, stored_to_unit  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
 from motion.track import (TrackerConfig, check_normal_map, decode_frame, raw_correlation_argmax,  # noqa: E402
                           rig_kernel, track_frames)
@@ -62,7 +63,8 @@ def main() -> None:
     frames = list(sequence.normals)
     encoded = [np.rint(encode_normals(n) * 255).astype(np.uint8) for n in frames]
     batch = 32
-    theta = torch.tensor(head_motion(batch, 30.0, 0, 3.0, 0.3, rig.num_joints), dtype=torch.float32)
+    anatomical = torch.tensor(head_motion(batch, 30.0, 0, 3.0, 0.3, rig.num_joints), dtype=torch.float32)
+    theta = rig.from_anatomical(anatomical)
     tau = torch.linspace(-0.02, 0.06, batch)
     with torch.no_grad():
         vertices = rig(theta, tau=tau)
@@ -70,7 +72,7 @@ def main() -> None:
     def from_bytes():
         decoded = []
         for i, image in enumerate(encoded):
-            normals = decode_frame(image.astype(np.float32) / 255.0, False)
+            normals = decode_frame(stored_to_unit(image)[0], False)
             check_normal_map(normals, f"frame {i}")
             decoded.append(normals)
         track_frames(decoded, kernel)

@@ -194,13 +194,14 @@ def per_vertex_uv(num_vertices: int, faces: np.ndarray, faces_uv: np.ndarray, uv
 def read_larynx_map(path: Path) -> np.ndarray:
     import cv2
 
+    from data.render import stored_to_unit  # here, not at the top: importing data.assets needs no torch
+
     image = cv2.imread(str(_require(path, "larynx displacement map")), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise InputError(f"{path}: not a readable image (expected the grey larynx map)")
     if image.ndim == 3:
         image = cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2GRAY)
-    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(image.dtype, 1.0)
-    return image.astype(np.float64) / scale
+    return stored_to_unit(image, str(path), np.float64)[0]
 
 
 def read_ict_expressions(ict_dir: Path, num_vertices: int, template: np.ndarray) -> np.ndarray:

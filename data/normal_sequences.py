@@ -5,12 +5,15 @@ with a known generating process, deterministic from its seed:
 
 - tau: ``data.synthetic_tau.random_tau_trajectory`` (rest, swallows,
   speech-like 2-6 Hz motion, slow drift), UV units, + = up the neck.
-- head motion: a smooth random rotation per axis (flexion x, axial y,
-  lateral bending z; a sum of three sinusoids below ``head_motion_hz``),
-  scaled so its largest excursion is ``head_motion_deg`` (each axis draws a
-  peak in [0.5, 1] x that), spread evenly over the 8 cervical joints (each
-  joint turns 1/8 of it, so the head turns by about the whole).
-- eta: one larynx size per sequence, uniform in ``eta_range``.
+- head motion: a smooth random rotation per axis of the joints' ANATOMICAL
+  frames (``models.rig``: x flexion, y axial rotation, z lateral bending; a
+  sum of three sinusoids below ``head_motion_hz``), scaled so its largest
+  excursion is ``head_motion_deg`` (each axis draws a peak in [0.5, 1] x
+  that), spread evenly over the 8 cervical joints (each joint turns 1/8 of
+  it, so the head turns by about the whole).  The rig is posed with
+  ``rig.from_anatomical(theta)`` (its bone frames need not be anatomical:
+  the real HACK rig's oc1 bone points into the face).
+- eta: one larynx size per sequence, uniform in [``eta_min``, ``eta_max``].
 - image degradation, in order: optional Gaussian blur (``blur_px`` sigma,
   pixels), per-pixel Gaussian noise of std ``noise`` on each normal component,
   renormalised; optional 8-bit quantisation of the RGB encoding.
@@ -28,7 +31,8 @@ CLI (hydra, ``configs/normal_sequences.yaml``)::
     python -m data.normal_sequences out=frames/ frames=300 seed=0 [format=png8|png16|exr|npy] [noise=0.05]
 
 writes ``frame_00000.png ...`` (or ``normals.npy`` [T,H,W,3] float32 raw normals) and ``truth.csv``
-(``frame,time,x_px,y_px,tau,eta,fps``; x_px/y_px the ground truth above) into ``out``.
+(``frame,time,tau,x_px,y_px,eta,fps``, ``data.io.write_tau_track``; x_px/y_px the ground truth above)
+into ``out``.
 """
 from __future__ import annotations
 
@@ -36,12 +40,13 @@ import time as _time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
 from data.cli import run_cli
-from data.io import InputError, save_npy, write_csv
-from data.render import (DEFAULT_CM_PER_PX, DEFAULT_SIZE, Camera, NeckRenderer, cv2, decode_normals, encode_normals,
+from data.io import InputError, TauTrack, save_npy, write_tau_track
+from data.render import (DEFAULT_CM_PER_PX, DEFAULT_SIZE, Camera, NeckRenderer, decode_normals, encode_normals,
                          neck_camera, write_normal_image)
 from data.synthetic_tau import random_tau_trajectory
 
@@ -72,8 +77,9 @@ class NormalSequence:
     """A rendered sequence and its truth.
 
     normals [T,H,W,3] float32 camera-space normals (0 on the background); mask [T,H,W] bool;
-    larynx_px [T,2] (col, row) ground-truth larynx point; tau [T] UV units; theta [T,8,3] radians;
-    eta larynx size; fps; camera the view.
+    larynx_px [T,2] (col, row) ground-truth larynx point; tau [T] UV units; theta [T,8,3] radians,
+    axis-angle per joint in the ANATOMICAL joint frames (x flexion, y axial rotation, z lateral bending;
+    the rig's bone-frame input is ``rig.from_anatomical(theta)``); eta larynx size; fps; camera the view.
     """
 
     normals: np.ndarray
@@ -95,7 +101,8 @@ class NormalSequence:
 
 def head_motion(num_frames: int, fps: float, seed: int, amplitude_deg: float, max_hz: float,
                 num_joints: int = 8) -> np.ndarray:
-    """Smooth random neck pose theta [T,J,3] (radians): per axis a peak excursion in [0.5, 1] x
+    """Smooth random neck pose theta [T,J,3] (radians, axis-angle in the joints' anatomical frames: x
+    flexion, y axial rotation, z lateral bending): per axis a peak excursion in [0.5, 1] x
     ``amplitude_deg``, spread evenly over the joints."""
     rng = np.random.default_rng(seed)
     time = np.arange(num_frames) / fps
@@ -139,7 +146,7 @@ def make_sequence(rig, config: SequenceConfig, seed: int, chunk: int = 8) -> Nor
     eta = float(rng.uniform(config.eta_min, config.eta_max))
     camera = neck_camera(rig, config.size, config.cm_per_px, config.perspective)
     renderer = NeckRenderer(rig, camera)
-    theta_t = torch.tensor(theta, dtype=torch.float32)
+    theta_t = rig.from_anatomical(torch.tensor(theta, dtype=torch.float32))       # bone frames: the rig's input
     tau_t = torch.tensor(tau, dtype=torch.float32)
     render, pixels = renderer.render_with_truth(theta_t, tau=tau_t, eta=torch.full_like(tau_t, eta), chunk=chunk)
     mask = render.mask.numpy()
@@ -162,10 +169,9 @@ def write_sequence(folder: str | Path, sequence: NormalSequence, image_format: s
             write_normal_image(written[-1], frame, bits)
     else:
         raise InputError(f"format={image_format}: expected png8, png16, exr or npy")
-    write_csv(folder / "truth.csv", {
-        "frame": np.arange(len(sequence)), "time": sequence.time, "x_px": sequence.larynx_px[:, 0],
-        "y_px": sequence.larynx_px[:, 1], "tau": sequence.tau, "eta": np.full(len(sequence), sequence.eta),
-        "fps": np.full(len(sequence), sequence.fps)}, float_format="%.9g")
+    write_tau_track(folder / "truth.csv", TauTrack(sequence.tau, sequence.time, sequence.fps),
+                    x_px=sequence.larynx_px[:, 0], y_px=sequence.larynx_px[:, 1],
+                    eta=np.full(len(sequence), sequence.eta))
     return written
 
 

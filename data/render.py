@@ -37,17 +37,15 @@ correct), renormalised.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
-os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")  # before the first cv2 import: EXR support
-import cv2  # noqa: E402
-
-from data.io import InputError, atomic_path  # noqa: E402
-from data.mesh_io import triangulate  # noqa: E402
+from data.io import InputError, atomic_path
+from data.mesh_io import triangulate
 
 DEFAULT_SIZE = 256          # pixels, square
 DEFAULT_CM_PER_PX = 0.08    # neck view: 256 px = 20.5 cm, the 70 px larynx kernel covers 5.6 cm
@@ -90,11 +88,6 @@ class Camera:
         """(col, row) of the optical axis."""
         return (self.width - 1) / 2.0, (self.height - 1) / 2.0
 
-    def cropped(self, width: int, height: int, centre=None) -> "Camera":
-        """The same view with another image size, optionally re-centred on a world point."""
-        return replace(self, width=int(width), height=int(height),
-                       centre=self.centre if centre is None else tuple(float(c) for c in centre))
-
     def _rotation(self, like: torch.Tensor) -> torch.Tensor:
         return torch.tensor(self.rotation, dtype=like.dtype, device=like.device)
 
@@ -124,10 +117,18 @@ class Camera:
 # ----------------------------------------------------------------------------- geometry
 
 
+def face_cross(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(v1 - v0) x (v2 - v0) of each triangle: vertices [...,N,3], faces [F,3] -> [...,F,3].
+
+    Its direction is the normal of a counter-clockwise triangle, its length twice the triangle's area.
+    """
+    corners = vertices[..., faces, :]                                                # [...,F,3,3]
+    return torch.linalg.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :])
+
+
 def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """Area-weighted vertex normals.  vertices [B,N,3], faces [F,3] (counter-clockwise outside) -> [B,N,3] unit."""
-    corners = vertices[:, faces]                                                     # [B,F,3,3]
-    face_normals = torch.linalg.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0])
+    face_normals = face_cross(vertices, faces)                                       # [B,F,3]
     out = torch.zeros_like(vertices)
     for k in range(3):  # |cross| = 2 * area: summing raw cross products weights faces by area
         out.index_add_(1, faces[:, k], face_normals)
@@ -142,16 +143,13 @@ def outward_faces(vertices: torch.Tensor, faces: np.ndarray | torch.Tensor) -> t
     """
     triangles = torch.as_tensor(triangulate(np.asarray(faces)), dtype=torch.long)
     vertices = vertices.to(torch.float64)
-    corners = vertices[triangles]
-    normals = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    outwardness = (normals * (corners.mean(1) - vertices.mean(0))).sum()
+    outwardness = (face_cross(vertices, triangles) * (vertices[triangles].mean(1) - vertices.mean(0))).sum()
     return triangles if outwardness >= 0 else triangles[:, [0, 2, 1]].contiguous()
 
 
 def vertex_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """The area around each vertex: a third of its incident triangles' areas.  vertices [N,3], faces [F,3] -> [N]."""
-    corners = vertices[faces]
-    areas = 0.5 * torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=-1)
+    areas = 0.5 * face_cross(vertices, faces).norm(dim=-1)
     out = vertices.new_zeros(len(vertices))
     for k in range(3):
         out.index_add_(0, faces[:, k], areas / 3.0)
@@ -165,21 +163,29 @@ def vertex_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 LARYNX_CAP = 0.3
 
 
-def larynx_point(rig, vertices: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+def larynx_areas(rig, triangles: torch.Tensor | None = None) -> torch.Tensor:
+    """The template's surface area around each larynx-region vertex [M] (cm^2; ``vertex_areas`` at
+    ``rig.larynx_vertices``): the constant part of :func:`larynx_point`'s weights, computed once per rig.
+    triangles [F,3]: the rig's faces triangulated (either winding); default: triangulated here."""
+    if triangles is None:
+        triangles = torch.as_tensor(triangulate(rig.faces.numpy()), dtype=torch.long)
+    return vertex_areas(rig.template, triangles)[rig.larynx_vertices]
+
+
+def larynx_point(rig, vertices: torch.Tensor, tau: torch.Tensor, areas: torch.Tensor) -> torch.Tensor:
     """The larynx point [B,3] (cm): the ground-truth position the tracker reports.
 
     The centroid of the larynx's cap over the posed surface: the larynx-region vertices
     ``vertices[:, rig.larynx_vertices]`` weighted by ``max(|L| - LARYNX_CAP * max|L|, 0)``, |L| the
     magnitude of the larynx term L(eta = 1, tau) at the vertex, times the vertex's surface area on the
-    template.  The area makes it a surface integral (independent of how densely the mesh samples the
-    larynx); the cap keeps it on the body of the larynx, away from the map's low fringe; eta scales all
-    weights alike, so the point does not depend on it.  vertices [B,N,3] posed
-    (``rig(theta, psi, tau, eta)``), tau [B] the tau they were posed with.
+    template (``areas`` [M] = :func:`larynx_areas`).  The area makes it a surface integral (independent of
+    how densely the mesh samples the larynx); the cap keeps it on the body of the larynx, away from the
+    map's low fringe; eta scales all weights alike, so the point does not depend on it.  vertices [B,N,3]
+    posed (``rig(theta, psi, tau, eta)``), tau [B] the tau they were posed with.
     """
-    area = vertex_areas(rig.template, torch.as_tensor(triangulate(rig.faces.numpy()), dtype=torch.long))
     magnitude = rig.larynx_region_offsets(tau, torch.ones_like(tau)).norm(dim=-1)       # [B,M]
     cap = (magnitude - LARYNX_CAP * magnitude.amax(dim=1, keepdim=True)).clamp_min(0.0)
-    weights = cap * area[rig.larynx_vertices]
+    weights = cap * areas
     region = vertices[:, rig.larynx_vertices]                                          # [B,M,3]
     return (weights[..., None] * region).sum(1) / weights.sum(1, keepdim=True).clamp_min(1e-12)
 
@@ -188,7 +194,7 @@ def rest_larynx_point(rig) -> torch.Tensor:
     """The larynx point [3] at rest (theta 0, psi 0, tau 0, eta 1)."""
     with torch.no_grad():
         tau = torch.zeros(1)
-        return larynx_point(rig, rig(rig.neutral(1), tau=tau), tau)[0]
+        return larynx_point(rig, rig(rig.neutral(1), tau=tau), tau, larynx_areas(rig))[0]
 
 
 def neck_camera(rig, size: int = DEFAULT_SIZE, cm_per_px: float = DEFAULT_CM_PER_PX, perspective: bool = False,
@@ -375,31 +381,34 @@ def decode_normals(rgb: np.ndarray | torch.Tensor):
 class NeckRenderer:
     """Normal maps of a rig through a camera (default: :func:`neck_camera`).
 
-    ``renderer(theta [B,J,3], psi=None, tau=None, eta=None) -> NormalRender``; ``larynx_pixels(...)``
-    gives the projected :func:`larynx_point` [B,2] (col, row) for the same inputs.
+    ``renderer(theta [B,J,3], psi=None, tau=None, eta=None) -> NormalRender``; ``pose(...)`` gives the
+    posed vertices and the projected :func:`larynx_point` [B,2] (col, row) for the same inputs,
+    ``render_with_truth(...)`` both.  The rig's triangles (``faces``, wound outwards) and larynx areas
+    (``larynx_areas``) are computed once, here.
     """
 
     rig: object
     camera: Camera | None = None
     faces: torch.Tensor = field(init=False)
+    larynx_areas: torch.Tensor = field(init=False)
 
     def __post_init__(self) -> None:
         if self.camera is None:
             self.camera = neck_camera(self.rig)
         self.faces = outward_faces(self.rig.template, self.rig.faces.numpy())
+        self.larynx_areas = larynx_areas(self.rig, self.faces)
 
     @torch.no_grad()
     def pose(self, theta, psi=None, tau=None, eta=None) -> tuple[torch.Tensor, torch.Tensor]:
         """(posed vertices [B,N,3], larynx point pixels [B,2]) for the rig's inputs."""
         tau = theta.new_zeros(theta.shape[0]) if tau is None else tau.to(theta.dtype)
         vertices = self.rig(theta, psi, tau, eta)
-        pixels, _ = self.camera.project(larynx_point(self.rig, vertices, tau))
+        pixels, _ = self.camera.project(larynx_point(self.rig, vertices, tau, self.larynx_areas))
         return vertices, pixels
 
     @torch.no_grad()
     def __call__(self, theta, psi=None, tau=None, eta=None, chunk: int = 8) -> NormalRender:
-        vertices, _ = self.pose(theta, psi, tau, eta)
-        return render_normals(vertices, self.faces, self.camera, chunk)
+        return render_normals(self.rig(theta, psi, tau, eta), self.faces, self.camera, chunk)
 
     @torch.no_grad()
     def render_with_truth(self, theta, psi=None, tau=None, eta=None, chunk: int = 8):
@@ -412,8 +421,7 @@ class NeckRenderer:
 #
 # On disk a normal map is an RGB image: PNG (8 or 16 bit, also TIFF) holding the encoding (n + 1) / 2
 # scaled to the integer range, background black; or EXR holding float32 raw normals n in [-1, 1],
-# background 0.  EXR goes through the OpenEXR package, or OpenCV when built with OpenEXR (which needs
-# OPENCV_IO_ENABLE_OPENEXR=1 set before cv2 is first imported: done at the top of this module).
+# background 0.  EXR goes through the OpenEXR package (a dependency: the OpenCV wheels cannot read EXR).
 
 INTEGER_IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
 FLOAT_IMAGE_SUFFIXES = (".exr",)
@@ -443,39 +451,45 @@ def write_normal_image(path: str | os.PathLike, normals: np.ndarray, bit_depth: 
             raise ValueError(f"{path}: unsupported normal-map format '{path.suffix}', expected .png, .tif or .exr")
 
 
+def stored_to_unit(values: np.ndarray, label: str = "image", dtype=np.float32) -> tuple[np.ndarray, bool]:
+    """Stored pixel values [...] -> (values as ``dtype``, is_float).
+
+    Unsigned integers (8/16-bit images and videos, integer ``.npy`` stacks) are divided by their type's
+    maximum, so [0, 255] or [0, 65535] -> [0, 1]; floats come back as stored (their meaning, raw or
+    encoded, is the caller's).  Other types raise InputError naming ``label``.
+    """
+    values = np.asarray(values)
+    if values.dtype.kind == "f":
+        return values.astype(dtype, copy=False), True
+    if values.dtype.kind == "u":
+        return values.astype(dtype) / float(np.iinfo(values.dtype).max), False
+    raise InputError(f"{label}: pixel type {values.dtype}, expected unsigned integers (8/16-bit) or floats")
+
+
 def _read_exr(path: Path) -> np.ndarray:
+    import OpenEXR
+
     try:
-        import OpenEXR
-    except ImportError:
-        OpenEXR = None
-    if OpenEXR is not None:
-        try:
-            with OpenEXR.File(str(path)) as exr:
-                channels = exr.channels()
-                for name in ("RGB", "RGBA"):
-                    if name in channels:
-                        return np.asarray(channels[name].pixels, dtype=np.float32)[..., :3]
-                if all(c in channels for c in "RGB"):
-                    return np.stack([np.asarray(channels[c].pixels, np.float32) for c in "RGB"], axis=-1)
-                raise InputError(f"{path}: EXR channels {sorted(channels)}, expected R, G, B (a normal map)")
-        except InputError:
-            raise
-        except Exception as e:  # the binding raises plain exceptions on bad files
-            raise InputError(f"{path}: not a readable EXR image ({e})") from None
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise InputError(f"{path}: cannot read EXR: install the OpenEXR package (pip install openexr) or an "
-                         "OpenCV built with OpenEXR")
-    if image.ndim != 3 or image.shape[2] < 3:
-        raise InputError(f"{path}: EXR image of shape {image.shape}, expected 3 channels (R, G, B)")
-    return image[..., 2::-1].astype(np.float32)
+        with OpenEXR.File(str(path)) as exr:
+            channels = exr.channels()
+            for name in ("RGB", "RGBA"):
+                if name in channels:
+                    return np.asarray(channels[name].pixels, dtype=np.float32)[..., :3]
+            if all(c in channels for c in "RGB"):
+                return np.stack([np.asarray(channels[c].pixels, np.float32) for c in "RGB"], axis=-1)
+            raise InputError(f"{path}: EXR channels {sorted(channels)}, expected R, G, B (a normal map)")
+    except InputError:
+        raise
+    except Exception as e:  # the binding raises plain exceptions on bad files
+        raise InputError(f"{path}: not a readable EXR image ({e})") from None
 
 
 def read_normal_image(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
     """Read one normal-map image as stored: (rgb [H,W,3] float32, is_float).
 
     Integer images (8/16-bit PNG/TIFF) come back divided by their integer maximum, so in [0, 1] (the
-    encoding); float images (EXR) come back as stored.  An alpha channel is dropped.
+    encoding); float images (EXR, float TIFF) come back as stored (:func:`stored_to_unit`).  An alpha
+    channel is dropped.
     """
     path = Path(path)
     if not path.is_file():
@@ -490,11 +504,4 @@ def read_normal_image(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
         raise InputError(f"{path}: not a readable image")
     if image.ndim != 3 or image.shape[2] < 3:
         raise InputError(f"{path}: image of shape {image.shape}, expected an RGB normal map (3 channels)")
-    rgb = image[..., 2::-1]
-    if rgb.dtype == np.uint8:
-        return rgb.astype(np.float32) / 255.0, False
-    if rgb.dtype == np.uint16:
-        return rgb.astype(np.float32) / 65535.0, False
-    if rgb.dtype.kind == "f":
-        return rgb.astype(np.float32), True
-    raise InputError(f"{path}: pixel type {rgb.dtype}, expected 8/16-bit integers or floats")
+    return stored_to_unit(image[..., 2::-1], str(path))

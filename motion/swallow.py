@@ -58,6 +58,7 @@ from data.cli import run_cli
 from data.io import (CsvTable, InputError, TauTrack, estimate_fps, figure, read_tau_track, resample_uniform,
                      save_figure, write_csv, write_tau_track)
 from data.io import _check_increasing  # the tau-track reader's check (names the file and line)
+from motion.signal import parabolic_peak
 
 LANDMARK_NAMES: tuple[str, ...] = ("onset", "dip", "peak", "undershoot", "return")
 ONSET, DIP, PEAK, UNDERSHOOT, RETURN = range(5)
@@ -170,8 +171,6 @@ def _smooth(x: np.ndarray, sigma_samples: float) -> np.ndarray:
 
 def _refine_extremum(x: np.ndarray, i: int) -> tuple[float, float]:
     """Sub-sample position and value of an extremum at sample ``i`` by a parabola through 3 samples."""
-    from motion.signal import parabolic_peak
-
     if 0 < i < len(x) - 1:
         offset, value = parabolic_peak(x[i - 1], x[i], x[i + 1])
         return i + offset, value

@@ -95,13 +95,16 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Iterable, Iterator
 
+import cv2
 import numpy as np
 import torch
+from scipy.ndimage import gaussian_filter1d
 
 from data.cli import run_cli
 from data.io import InputError, figure, load_npy, save_figure, write_csv
-from data.render import (DEFAULT_CM_PER_PX, FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, NeckRenderer, cv2,
-                         decode_normals, larynx_point, neck_camera, read_normal_image)
+from data.render import (DEFAULT_CM_PER_PX, FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, NeckRenderer,
+                         decode_normals, neck_camera, read_normal_image, stored_to_unit)
+from motion.signal import parabolic_peak
 
 KERNEL_SIZE = 70                 # the paper's 70x70x3 kernel
 DEFAULT_FPS = 30.0               # image folders and .npy stacks carry no frame rate
@@ -113,6 +116,14 @@ MIN_FOREGROUND = 0.02            # share of the frame that must be foreground
 
 
 # --------------------------------------------------------------------------- decoding and validation
+
+
+def float_is_raw(values: np.ndarray, float_encoding: str) -> bool:
+    """Whether float data ``values`` holds raw normals in [-1, 1] (else the encoding (n + 1) / 2):
+    ``float_encoding`` raw / encoded, or auto = raw if any value is negative (see the module doc)."""
+    if float_encoding == "auto":
+        return bool(values.min() < 0)
+    return float_encoding == "raw"
 
 
 def decode_frame(rgb: np.ndarray, is_raw: bool) -> np.ndarray:
@@ -170,8 +181,8 @@ class NormalMapSource:
     def _is_raw(self, values: np.ndarray, is_float: bool) -> bool:
         if not is_float:
             return False
-        if self._raw is None:
-            self._raw = bool(values.min() < 0) if self.float_encoding == "auto" else self.float_encoding == "raw"
+        if self._raw is None:  # decided on the first float frame, kept for the whole source
+            self._raw = float_is_raw(values, self.float_encoding)
         return self._raw
 
     def _decoded(self, values: np.ndarray, is_float: bool, label: str, shape: list) -> np.ndarray:
@@ -192,13 +203,12 @@ class NormalMapSource:
                 yield i, str(file), self._decoded(values, is_float, str(file), shape)
         elif self.kind == "npy":
             stack = np.load(self.path, mmap_mode="r", allow_pickle=False)
-            scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(stack.dtype)
             for i in range(len(stack)):
                 label = f"{self.path}: frame {i}"
-                values = np.asarray(stack[i], dtype=np.float32)
+                values, is_float = stored_to_unit(stack[i], label)
                 if not np.isfinite(values).all():
                     raise InputError(f"{label}: non-finite values; expected a normal map")
-                yield i, label, self._decoded(values / scale if scale else values, scale is None, label, shape)
+                yield i, label, self._decoded(values, is_float, label, shape)
         else:
             capture = cv2.VideoCapture(str(self.path))
             try:
@@ -210,8 +220,8 @@ class NormalMapSource:
                     label = f"{self.path}: frame {i}"
                     if image.ndim != 3 or image.shape[2] < 3:
                         raise InputError(f"{label}: {image.shape}, expected 3-channel colour frames")
-                    top = 65535.0 if image.dtype == np.uint16 else 255.0
-                    yield i, label, self._decoded(image[..., 2::-1].astype(np.float32) / top, False, label, shape)
+                    values, is_float = stored_to_unit(image[..., 2::-1], label)
+                    yield i, label, self._decoded(values, is_float, label, shape)
                     i += 1
             finally:
                 capture.release()
@@ -419,12 +429,10 @@ def kernel_from_file(path: str | Path, cm_per_px: float | None = None, float_enc
         values = load_npy(path, 3, "a kernel [h,w,3]")
         if values.shape[2] != 3:
             raise InputError(f"{path}: array of shape {values.shape}, expected a kernel [h,w,3]")
-        is_float = np.issubdtype(values.dtype, np.floating)
-        values = values.astype(np.float32) / (1.0 if is_float else float(np.iinfo(values.dtype).max))
+        values, is_float = stored_to_unit(values, str(path))
     else:
         values, is_float = read_normal_image(path)
-    raw = is_float and (float_encoding == "raw" or (float_encoding == "auto" and values.min() < 0))
-    normals = decode_frame(values, raw)
+    normals = decode_frame(values, is_float and float_is_raw(values, float_encoding))
     check_normal_map(normals, str(path))
     h, w = normals.shape[:2]
     return LarynxKernel(normals, ((w - 1) / 2.0, (h - 1) / 2.0), cm_per_px, str(path))
@@ -478,10 +486,8 @@ def rescale_kernel(kernel: LarynxKernel, cm_per_px: float) -> LarynxKernel:
 
 def rig_px_per_tau(rig, cm_per_px: float = DEFAULT_CM_PER_PX, delta: float = 0.02, perspective: bool = False) -> float:
     """Pixels of upward image motion of the larynx point per tau unit, in the default neck view at rest."""
-    camera = neck_camera(rig, 64, cm_per_px, perspective)
-    with torch.no_grad():
-        tau = torch.tensor([-delta, delta])
-        pixels, _ = camera.project(larynx_point(rig, rig(rig.neutral(2), tau=tau), tau))
+    renderer = NeckRenderer(rig, neck_camera(rig, 64, cm_per_px, perspective))
+    _, pixels = renderer.pose(rig.neutral(2), tau=torch.tensor([-delta, delta]))
     return float(pixels[0, 1] - pixels[1, 1]) / (2 * delta)
 
 
@@ -507,12 +513,9 @@ def subpixel_peak(scores: np.ndarray, col: int, row: int) -> tuple[float, float]
             if abs(dx) <= 1 and abs(dy) <= 1:
                 return col + dx, row + dy
 
-    def parabola(left: float, centre: float, right: float) -> float:
-        curvature = left - 2 * centre + right
-        return float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5)) if curvature < 0 else 0.0
-
-    dx = parabola(scores[row, col - 1], scores[row, col], scores[row, col + 1]) if 0 < col < w - 1 else 0.0
-    dy = parabola(scores[row - 1, col], scores[row, col], scores[row + 1, col]) if 0 < row < h - 1 else 0.0
+    # (col, row) is the maximum, so each parabola's vertex is a maximum too (or the samples are flat: 0).
+    dx = parabolic_peak(*scores[row, col - 1:col + 2])[0] if 0 < col < w - 1 else 0.0
+    dy = parabolic_peak(*scores[row - 1:row + 2, col])[0] if 0 < row < h - 1 else 0.0
     return col + dx, row + dy
 
 
@@ -641,13 +644,11 @@ def smooth_track(track: Track, sigma_frames: float) -> Track:
     (confidence 0) take their neighbours' values."""
     if sigma_frames <= 0:
         return track
-    radius = int(math.ceil(3 * sigma_frames))
-    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma_frames) ** 2)
-    weights = np.where(np.isfinite(track.x), track.confidence, 0.0)
+    weights = np.where(np.isfinite(track.x), track.confidence, 0.0).astype(np.float64)
+    den = gaussian_filter1d(weights, sigma_frames, mode="constant", truncate=3.0)
 
     def smooth(values: np.ndarray) -> np.ndarray:
-        num = np.convolve(np.nan_to_num(values) * weights, kernel, "same")
-        den = np.convolve(weights, kernel, "same")
+        num = gaussian_filter1d(np.nan_to_num(values) * weights, sigma_frames, mode="constant", truncate=3.0)
         return np.where(den > 1e-9, num / np.maximum(den, 1e-9), values)
 
     return Track(smooth(track.x), smooth(track.y), track.confidence, track.accepted)
@@ -692,20 +693,18 @@ def track_columns(track: Track, fps: float, rest_frame: int = 0, px_per_tau: flo
             "tau_px": tau_px, "tau": tau, "confidence": track.confidence}
 
 
-def plot_track(path: str | Path, columns: dict, title: str = "") -> None:
-    """y (px) / tau over time and the confidence, as a PNG (atomic)."""
+def plot_track(path: str | Path, columns: dict, accepted: np.ndarray, px_per_tau: float | None = None,
+               title: str = "") -> None:
+    """tau_px (and tau, with a calibration ``px_per_tau``) over time, the rejected frames (``accepted`` [T]
+    False) marked, and the confidence, as a PNG (atomic).  ``columns``: :func:`track_columns`."""
     time = columns["time"]
     fig, (top, bottom) = figure(nrows=2, ncols=1, figsize=(9, 5), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
     top.plot(time, columns["tau_px"], color="tab:blue", lw=1.2)
     top.set_ylabel("larynx rise tau_px (px, + = up)")
-    calibrated = np.isfinite(columns["tau"]).any()
-    if calibrated:
-        valid = np.isfinite(columns["tau"]) & (np.abs(columns["tau_px"]) > 1e-9)
-        scale = float(np.median(columns["tau"][valid] / columns["tau_px"][valid])) if valid.any() else None
-        if scale:
-            right = top.secondary_yaxis("right", functions=(lambda p: p * scale, lambda t: t / scale))
-            right.set_ylabel("tau (UV units)")
-    rejected = columns["confidence"] <= 0
+    if px_per_tau:
+        right = top.secondary_yaxis("right", functions=(lambda p: p / px_per_tau, lambda t: t * px_per_tau))
+        right.set_ylabel("tau (UV units)")
+    rejected = ~np.asarray(accepted, dtype=bool)
     if rejected.any():
         top.plot(time[rejected], columns["tau_px"][rejected], "x", color="tab:red", ms=4, label="rejected (held)")
         top.legend(loc="upper right")
@@ -799,7 +798,7 @@ def run(cfg) -> dict:
     write_csv(cfg.out, columns, float_format="%.9g")  # time of an hour-long take to 1e-5 s
     plot = cfg.plot if cfg.plot != "auto" else str(Path(cfg.out).with_suffix(".png"))
     if plot:
-        plot_track(plot, columns, f"{Path(str(cfg.input)).name}: kernel {kernel.source}")
+        plot_track(plot, columns, track.accepted, px_per_tau, f"{Path(str(cfg.input)).name}: kernel {kernel.source}")
     elapsed = _time.perf_counter() - started
     rejected = int((~track.accepted).sum())
     calibration = f"{px_per_tau:.1f} px per tau unit" if px_per_tau else "no calibration (tau column NaN)"

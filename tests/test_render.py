@@ -11,8 +11,8 @@ import torch
 
 from data.io import InputError
 from data.normal_sequences import SequenceConfig, head_motion, make_sequence
-from data.render import (Camera, NeckRenderer, encode_normals, larynx_point, neck_camera, outward_faces,
-                         read_normal_image, render_normals, rest_larynx_point, write_normal_image)
+from data.render import (Camera, NeckRenderer, encode_normals, larynx_areas, larynx_point, neck_camera, outward_faces,
+                         read_normal_image, render_normals, rest_larynx_point, stored_to_unit, write_normal_image)
 
 
 def grid_plane(size_cm: float, z: float, cells: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
@@ -123,7 +123,7 @@ def test_larynx_point_slides_up_with_tau_and_ignores_eta(builtin_rig):
     tau = torch.tensor([0.0, 0.03, 0.03])
     eta = torch.tensor([1.0, 1.0, 0.6])
     vertices = builtin_rig(builtin_rig.neutral(3), tau=tau, eta=eta)
-    points = larynx_point(builtin_rig, vertices, tau)
+    points = larynx_point(builtin_rig, vertices, tau, larynx_areas(builtin_rig))
     rise = float(points[1, 1] - points[0, 1])
     assert 0.8 < rise < 1.3                                  # tau 0.03 ~ 1 cm (models/rig.py)
     # eta shrinks the bump towards the neck along the larynx direction only: the point moves < 0.3 cm.
@@ -146,6 +146,18 @@ def test_normal_image_files_round_trip(tmp_path, suffix, bits, tolerance):
     assert float(np.abs(values - expected).max()) <= tolerance
     if not is_float:
         assert float(values[:4].max()) == 0.0                  # background written black
+
+
+def test_stored_values_map_to_the_unit_range():
+    """Integers over their type's maximum (255, 65535), floats untouched, signed integers refused."""
+    values, is_float = stored_to_unit(np.array([0, 51, 255], np.uint8))
+    assert not is_float and values.dtype == np.float32 and np.allclose(values, [0.0, 0.2, 1.0], atol=1e-7)
+    values, is_float = stored_to_unit(np.array([0, 13107, 65535], np.uint16), dtype=np.float64)
+    assert not is_float and values.dtype == np.float64 and np.allclose(values, [0.0, 0.2, 1.0], atol=1e-12)
+    values, is_float = stored_to_unit(np.array([-0.5, 0.25], np.float64))
+    assert is_float and values.dtype == np.float32 and np.array_equal(values, [-0.5, 0.25])
+    with pytest.raises(InputError, match=r"k\.npy: pixel type int16, expected unsigned integers"):
+        stored_to_unit(np.zeros(3, np.int16), "k.npy")
 
 
 def test_read_normal_image_errors(tmp_path):
