@@ -7,13 +7,40 @@ traceback.  A config's ``threads`` key sets torch's thread count.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Callable, TypeVar
 
 from data.io import InputError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+Config = TypeVar("Config")
+
+
+def config_dataclass(cls: type[Config], section, where: str, mixed: bool = False) -> Config:
+    """The settings dataclass ``cls`` from a config section (a DictConfig or a mapping).
+
+    Every key of ``section`` must be a field of ``cls`` (else InputError naming ``where``, the unknown
+    and the known keys), unless ``mixed``: the section also holds other settings, and only the fields are
+    taken.  Lists become tuples where the field's default is a tuple; a ValueError from the dataclass's
+    own validation becomes an InputError naming ``where``.
+    """
+    from omegaconf import DictConfig, OmegaConf
+
+    values = OmegaConf.to_container(section, resolve=True) if isinstance(section, DictConfig) else dict(section)
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(known))
+    if unknown and not mixed:
+        raise InputError(f"{where}: unknown keys {unknown}; known: {sorted(known)}")
+    values = {k: v for k, v in values.items() if k in known}
+    for name, value in values.items():
+        if isinstance(value, list) and isinstance(known[name].default, tuple):
+            values[name] = tuple(value)
+    try:
+        return cls(**values)
+    except ValueError as e:  # a value out of range: bad input, reported without a traceback
+        raise InputError(f"{where}: {e}") from None
 
 
 def missing_keys(cfg, keys: tuple[str, ...] | None = None) -> list[str]:

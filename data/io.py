@@ -234,7 +234,9 @@ def estimate_fps(time: np.ndarray) -> float:
     return round(float(1.0 / np.median(np.diff(time))), 3)
 
 
-def _check_increasing(time: np.ndarray, table: CsvTable, column: str) -> None:
+def check_increasing(time: np.ndarray, table: CsvTable, column: str) -> None:
+    """Raise InputError naming the file and line where ``column`` (values ``time``, one per data row of
+    ``table``) does not strictly increase."""
     steps = np.diff(time)
     if (steps <= 0).any():
         i = int(np.argmax(steps <= 0)) + 1
@@ -242,6 +244,22 @@ def _check_increasing(time: np.ndarray, table: CsvTable, column: str) -> None:
             f"{table.path}: column '{column}' must increase, but line {table.lines[i]} ({time[i]:g}) "
             f"is not after line {table.lines[i - 1]} ({time[i - 1]:g})"
         )
+
+
+def split_by_file(items: Sequence, val_fraction: float, seed: int, what: str = "file") -> tuple[list, list]:
+    """Split recordings by file: (train, validation) lists of ``items``, no item in both.
+
+    ``round(val_fraction * len(items))`` items are held out, at least one and at most all but one;
+    which ones is a permutation drawn from ``seed`` (deterministic), each list keeps the input order.
+    ``what`` names the items in the error for fewer than two.
+    """
+    if len(items) < 2:
+        raise InputError(f"{len(items)} {what}(s); need at least 2 to split into training and validation")
+    if not 0 < val_fraction < 1:
+        raise InputError(f"val_fraction must be in (0, 1), got {val_fraction}")
+    count = min(len(items) - 1, max(1, int(round(val_fraction * len(items)))))
+    held_out = set(np.random.default_rng(seed).permutation(len(items))[:count].tolist())
+    return ([x for i, x in enumerate(items) if i not in held_out], [x for i, x in enumerate(items) if i in held_out])
 
 
 def read_tau_track(path: str | os.PathLike, fps: float | None = None,
@@ -283,14 +301,14 @@ def read_tau_track(path: str | os.PathLike, fps: float | None = None,
     rate = fps if fps is not None else file_fps
     if table.has("time"):
         time = table.numeric("time")
-        _check_increasing(time, table, "time")
+        check_increasing(time, table, "time")
         if rate is None:
             if len(time) < 2:
                 raise InputError(f"{path}: one row only; give fps=... to know its frame rate")
             rate = estimate_fps(time)
     elif table.has("frame"):
         frame = table.numeric("frame")
-        _check_increasing(frame, table, "frame")
+        check_increasing(frame, table, "frame")
         if rate is None:
             raise InputError(f"{path}: column 'frame' without a 'time' or 'fps' column; give fps=...")
         time = frame / rate

@@ -37,14 +37,14 @@ into ``out``.
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from data.cli import run_cli
+from data.cli import config_dataclass, run_cli
 from data.io import InputError, TauTrack, save_npy, write_tau_track
 from data.render import (DEFAULT_CM_PER_PX, DEFAULT_SIZE, Camera, NeckRenderer, decode_normals, encode_normals,
                          neck_camera, write_normal_image)
@@ -182,11 +182,7 @@ def run(cfg) -> NormalSequence:
     """The CLI's work for a composed ``configs/normal_sequences.yaml`` (tests call this in-process)."""
     from models.rig import HeadNeckModel
 
-    if not cfg.out:
-        raise InputError("out=FOLDER is required (frames and truth.csv are written there)")
-    torch.set_num_threads(int(cfg.threads))
-    known = {f.name for f in fields(SequenceConfig)}
-    config = SequenceConfig(**{k: cfg[k] for k in known if k in cfg})
+    config = config_dataclass(SequenceConfig, cfg, "configs/normal_sequences.yaml", mixed=True)
     started = _time.perf_counter()
     sequence = make_sequence(HeadNeckModel.from_config(cfg.rig), config, int(cfg.seed))
     rendered = _time.perf_counter() - started

@@ -7,7 +7,7 @@ A *pair file* is an ``.npz`` holding one recording:
 - optional ``subject`` (a string naming the person), ``eta`` (larynx size, scalar) and
   ``time`` [T] (seconds on the expression recording's clock, informative only).
 
-A *pairs folder* holds many such files; :func:`split_pairs` splits it into training and
+A *pairs folder* holds many such files; ``data.io.split_by_file`` splits it into training and
 validation **by file**, so no recording is in both.
 
 Capture workflow: the larynx tracker writes a tau track (CSV ``frame,time,x_px,y_px,tau_px,tau,
@@ -139,19 +139,6 @@ def load_pairs(folder: str | os.PathLike, fps: float | None = None) -> list[Lary
         raise InputError(f"{folder}: no .npz pair files; make them with python -m data.pairs")
     pairs = [load_pair(f) for f in files]
     return pairs if fps is None else [p.resampled(fps) for p in pairs]
-
-
-def split_pairs(pairs: list[LarynxSequence], val_fraction: float, seed: int = 0
-                ) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
-    """Split by file: (train, validation), at least one file in each, deterministic from ``seed``."""
-    if len(pairs) < 2:
-        raise InputError(f"{len(pairs)} pair file(s); need at least 2 to split into training and validation")
-    if not 0 < val_fraction < 1:
-        raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
-    order = np.random.default_rng(seed).permutation(len(pairs))
-    count = min(len(pairs) - 1, max(1, int(round(val_fraction * len(pairs)))))
-    val = set(order[:count].tolist())
-    return ([p for i, p in enumerate(pairs) if i not in val], [p for i, p in enumerate(pairs) if i in val])
 
 
 # --------------------------------------------------------------------------- alignment

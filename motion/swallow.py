@@ -42,7 +42,6 @@ Inputs are tau tracks (``data.io.read_tau_track``: CSV with ``tau`` and
 """
 from __future__ import annotations
 
-import dataclasses
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,10 +53,9 @@ from scipy.interpolate import PchipInterpolator
 from scipy.ndimage import gaussian_filter1d, median_filter
 from scipy.signal import find_peaks
 
-from data.cli import run_cli
+from data.cli import config_dataclass, run_cli
 from data.io import (CsvTable, InputError, TauTrack, estimate_fps, figure, read_tau_track, resample_uniform,
-                     save_figure, write_csv, write_tau_track)
-from data.io import _check_increasing  # the tau-track reader's check (names the file and line)
+                     check_increasing, save_figure, write_csv, write_tau_track)
 from motion.signal import parabolic_peak
 
 LANDMARK_NAMES: tuple[str, ...] = ("onset", "dip", "peak", "undershoot", "return")
@@ -697,7 +695,7 @@ def read_template(path: str | Path) -> SwallowTemplate:
     if len(table) < 3:
         raise InputError(f"{path}: {len(table)} rows, a swallow template needs at least 3")
     time, tau = table.numeric("time"), table.numeric("tau")
-    _check_increasing(time, table, "time")
+    check_increasing(time, table, "time")
     std = table.numeric("std") if table.has("std") else np.zeros(len(table))
     if (std < 0).any():
         i = int(np.argmax(std < 0))
@@ -759,15 +757,7 @@ def plot_playback(path: str | Path, track: TauTrack, out: np.ndarray, at: Sequen
 
 def config_from(cfg: DictConfig) -> SwallowConfig:
     """SwallowConfig from the ``swallow`` section of a hydra config (unknown keys are an error)."""
-    values = dict(cfg.swallow)
-    known = {f.name for f in dataclasses.fields(SwallowConfig)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise InputError(f"configs/swallow.yaml: unknown swallow.* keys {unknown}; known: {sorted(known)}")
-    try:
-        return SwallowConfig(**values)
-    except ValueError as e:  # a value out of range: bad input, reported without a traceback
-        raise InputError(f"configs/swallow.yaml: {e}") from None
+    return config_dataclass(SwallowConfig, cfg.swallow, "swallow (configs/swallow.yaml)")
 
 
 def run_template(cfg: DictConfig) -> TemplateBuild:

@@ -91,7 +91,7 @@ from __future__ import annotations
 import math
 import re
 import time as _time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -100,7 +100,7 @@ import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter1d
 
-from data.cli import run_cli
+from data.cli import config_dataclass, run_cli
 from data.io import InputError, figure, load_npy, save_figure, write_csv
 from data.render import (DEFAULT_CM_PER_PX, FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, NeckRenderer,
                          decode_normals, neck_camera, read_normal_image, stored_to_unit)
@@ -722,12 +722,8 @@ def plot_track(path: str | Path, columns: dict, accepted: np.ndarray, px_per_tau
 
 
 def tracker_config_from(cfg) -> TrackerConfig:
-    values = dict(cfg.tracker)
-    known = {f.name for f in fields(TrackerConfig)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise InputError(f"configs/track.yaml: unknown tracker.* keys {unknown}; known: {sorted(known)}")
-    config = TrackerConfig(**values)
+    """TrackerConfig from the ``tracker`` section, scaled to ``cm_per_px`` when given."""
+    config = config_dataclass(TrackerConfig, cfg.tracker, "tracker (configs/track.yaml)")
     return config.at_scale(float(cfg.cm_per_px)) if cfg.get("cm_per_px") is not None else config
 
 
@@ -750,12 +746,7 @@ def build_kernel(cfg, first_frame: np.ndarray, first_label: str, rig_loader) -> 
 
 def run(cfg) -> dict:
     """The CLI's work for a composed ``configs/track.yaml`` (tests call this in-process); returns the columns."""
-    if not cfg.input:
-        raise InputError("input=... is required: a folder of normal-map images, a video or a .npy stack")
-    if not cfg.out:
-        raise InputError("out=track.csv is required")
-    torch.set_num_threads(int(cfg.threads))
-    cv2.setNumThreads(int(cfg.threads))
+    cv2.setNumThreads(int(cfg.threads))  # torch's are set by data.cli.run_cli
     started = _time.perf_counter()
     source = open_source(cfg.input, cfg.fps, str(cfg.float_encoding))
     rig_cache: list = []

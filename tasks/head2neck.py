@@ -30,7 +30,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from data.cervical_prior import PriorConfig, head_rotations, load_theta_sequences, sample_sequences
-from data.io import InputError
+from data.cli import config_dataclass
+from data.io import InputError, split_by_file
 from models.head2neck import build_model, chain_head_rotation, correct_to_head, head_error_deg, split_head_rotation
 from models.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
 from models.rig import HeadNeckModel
@@ -41,29 +42,23 @@ __all__ = ["Task", "build_model"]
 
 def prior_config(data: DictConfig) -> PriorConfig:
     """The generator settings among ``cfg.data`` (the fields of PriorConfig)."""
-    fields = PriorConfig.__dataclass_fields__
-    values = {k: v for k, v in OmegaConf.to_container(data, resolve=True).items() if k in fields}
-    if "kind_weights" in values:
-        values["kind_weights"] = tuple(values["kind_weights"])
-    return PriorConfig(**values)
+    return config_dataclass(PriorConfig, data, "data (configs/data_task/head2neck_synthetic.yaml)", mixed=True)
 
 
 def split_sequences(sequences: list[np.ndarray], val_fraction: float, seed: int, path: str
                     ) -> tuple[list[np.ndarray], list[np.ndarray], str]:
-    """(train, val, description): by file when there are several, else by time."""
-    if not 0 < val_fraction < 1:
-        raise InputError(f"{path}: val_fraction must be in (0, 1), got {val_fraction}")
+    """(train, val, description): by file when there are several (``data.io.split_by_file``), else the
+    last ``val_fraction`` of the one file's frames."""
     if len(sequences) == 1:
+        if not 0 < val_fraction < 1:
+            raise InputError(f"{path}: val_fraction must be in (0, 1), got {val_fraction}")
         theta = sequences[0]
         cut = int(round(len(theta) * (1 - val_fraction)))
         if cut < 1 or cut >= len(theta):
             raise InputError(f"{path}: {len(theta)} frames are too few to hold out {val_fraction:.0%} of them")
         return [theta[:cut]], [theta[cut:]], f"the last {len(theta) - cut} frames of {path}"
-    order = np.random.default_rng(seed).permutation(len(sequences))
-    count = min(len(sequences) - 1, max(1, math.ceil(val_fraction * len(sequences))))
-    val = [sequences[i] for i in order[:count]]
-    train = [sequences[i] for i in order[count:]]
-    return train, val, f"{count} of the {len(sequences)} sequences in {path}"
+    train, val = split_by_file(sequences, val_fraction, seed, f"theta sequence in {path}")
+    return train, val, f"{len(val)} of the {len(sequences)} sequences in {path}"
 
 
 class Task:
@@ -92,7 +87,7 @@ class Task:
         if data.kind == "theta_seq":
             sequences = [self.rig.to_anatomical(torch.as_tensor(s.theta)).numpy()  # release layout: bone frames
                          for s in load_theta_sequences(data.path, float(data.fps), self.rig.num_joints)]
-            return split_sequences(sequences, float(data.val_fraction), int(self.cfg.seed), str(data.path))
+            return split_sequences(sequences, float(data.val_fraction), int(data.split_seed), str(data.path))
         raise ValueError(f"task head2neck: unknown data kind '{data.kind}', expected synthetic or theta_seq")
 
     def _frames(self, theta: np.ndarray) -> dict[str, torch.Tensor]:

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from data.io import InputError
-from data.pairs import LarynxSequence, load_pairs, split_pairs
+from data.io import InputError, split_by_file
+from data.pairs import LarynxSequence, load_pairs
 from models.larynx_transformer import build_model  # also the task protocol's build_model(model_config)
 
 
@@ -46,7 +46,7 @@ def load_sequences(data: DictConfig) -> tuple[list[LarynxSequence], list[LarynxS
         return train, val
     if data.kind == "pairs":
         pairs = load_pairs(data.path, data.fps)
-        return split_pairs(pairs, data.val_fraction, data.get("split_seed", 0))
+        return split_by_file(pairs, float(data.val_fraction), int(data.split_seed), f"pair file in {data.path}")
     raise ValueError(f"larynx_transformer: data.kind '{data.kind}' not supported (synthetic or pairs)")
 
 

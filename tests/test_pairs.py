@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from data.expressions import EXPRESSION_NAMES, read_expressions
-from data.io import InputError, read_tau_track, save_npz, write_csv
-from data.pairs import LarynxSequence, align_pair, load_pair, load_pairs, save_pair, split_pairs
+from data.io import InputError, read_tau_track, save_npz, split_by_file, write_csv
+from data.pairs import LarynxSequence, align_pair, load_pair, load_pairs, save_pair
 
 REPO = Path(__file__).resolve().parents[1]
 JAW = EXPRESSION_NAMES.index("jawOpen")
@@ -139,11 +139,16 @@ def test_load_pairs_resamples_to_one_rate(tmp_path):
 
 def test_split_by_file(tmp_path):
     pairs = [make_sequence(seed=i) for i in range(10)]
-    train, val = split_pairs(pairs, 0.2, seed=3)
+    train, val = split_by_file(pairs, 0.2, seed=3, what="pair file")
     assert (len(train), len(val)) == (8, 2)
+    assert {p.name for p in train} | {p.name for p in val} == {p.name for p in pairs}
     assert not {p.name for p in train} & {p.name for p in val}
-    again_train, again_val = split_pairs(pairs, 0.2, seed=3)
+    again_train, again_val = split_by_file(pairs, 0.2, seed=3)
     assert [p.name for p in again_val] == [p.name for p in val]
-    assert len(split_pairs(pairs[:2], 0.01)[1]) == 1 and len(split_pairs(pairs[:2], 0.99)[0]) == 1
+    other_seeds = {tuple(p.name for p in split_by_file(pairs, 0.2, seed=s)[1]) for s in range(10)}
+    assert len(other_seeds) > 1                                 # the seed chooses the held-out files
+    assert len(split_by_file(pairs[:2], 0.01, 0)[1]) == 1 and len(split_by_file(pairs[:2], 0.99, 0)[0]) == 1
     with pytest.raises(InputError, match="1 pair file"):
-        split_pairs(pairs[:1], 0.2)
+        split_by_file(pairs[:1], 0.2, 0, "pair file")
+    with pytest.raises(InputError, match=r"val_fraction must be in \(0, 1\), got 1.5"):
+        split_by_file(pairs, 1.5, 0)

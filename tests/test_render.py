@@ -5,9 +5,13 @@ rasterised depth, and the encoding against its definition (n + 1) / 2 on disk.
 """
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from data.io import InputError
 from data.normal_sequences import SequenceConfig, head_motion, make_sequence
@@ -195,3 +199,12 @@ def test_head_motion_is_smooth_and_within_its_amplitude():
     head = np.degrees(theta.sum(axis=1))                         # the joints' share summed: the head's turn
     assert float(np.abs(head).max()) <= 3.0 + 1e-9 and float(np.abs(head).max()) > 1.0
     assert float(np.abs(np.diff(head, axis=0)).max()) < 0.3       # degrees per frame: smooth
+
+
+def test_sequence_yaml_mirrors_config_dataclass():
+    """configs/normal_sequences.yaml holds every SequenceConfig field with the dataclass's default, and the
+    CLI's own keys besides."""
+    with open(Path(__file__).resolve().parents[1] / "configs" / "normal_sequences.yaml") as f:
+        config = yaml.safe_load(f)
+    cli_keys = {"defaults", "out", "format", "seed", "rig", "threads"}
+    assert {k: v for k, v in config.items() if k not in cli_keys} == dataclasses.asdict(SequenceConfig())

@@ -344,7 +344,7 @@ def test_bad_inputs_name_file_and_what_was_expected(tmp_path):
         read_template(negative)
     with pytest.raises(InputError, match="mode=play needs at="):
         run(compose(["mode=play", f"track={bad_number}", f"template={negative}", f"out={tmp_path / 'o.csv'}"]))
-    with pytest.raises(InputError, match="unknown swallow.* keys"):
+    with pytest.raises(InputError, match=r"swallow \(configs/swallow\.yaml\): unknown keys \['typo'\]"):
         run(compose([f"inputs=[{bad_number}]", f"out={tmp_path / 'o.csv'}", "+swallow.typo=1"]))
     with pytest.raises(InputError, match=r"swallow\.fade_seconds\) must be positive, got 0"):
         run(compose([f"inputs=[{bad_number}]", f"out={tmp_path / 'o.csv'}", "swallow.fade_seconds=0"]))
