@@ -10,7 +10,8 @@ frame rate (the larynx model's, else ``out_fps``, else the recording's).  Then, 
 
 - tau: the expression -> larynx transformer streamed over psi (``checkpoint``, with ``eta`` if the
   model takes it); without one the larynx rests (tau = 0);
-- swallows: a swallow template (``python -m motion.swallow``) inserted at ``swallow_at`` seconds;
+- swallows: a swallow template (``python -m motion.swallow``) inserted at ``swallow_at`` seconds,
+  blended as ``swallow_playback`` says (``motion.swallow.insert_swallows``);
 - theta: the recording's head rotation (``HeadYaw, HeadPitch, HeadRoll``; conventions and options in
   ``motion/head2neck.py``) through the head -> cervical spine model (``head2neck``); without one, or
   without recorded head rotation, the neck rests (theta = 0);
@@ -30,18 +31,19 @@ import torch
 from omegaconf import DictConfig
 from tqdm import tqdm
 
-from data.cli import run_cli
+from data.cli import config_dataclass, run_cli
 from data.expressions import ExpressionTrack, read_expressions
-from data.io import InputError, TauTrack, save_npy, write_tau_track
+from data.io import InputError, TauTrack, as_list, fresh_output_folder, save_npy, write_tau_track
 from data.mesh_io import write_obj, write_ply
 from models.checkpoint import load_model
 from models.head2neck import predict_theta
 from models.larynx_transformer import predict_tau
 from models.rig import HeadNeckModel
 from motion.head2neck import head_rotations_from_ypr, load_head2neck, recentered
-from motion.swallow import insert_swallows, read_template
+from motion.swallow import SwallowConfig, insert_swallows, read_template
 
 MESH_FORMATS = ("ply", "obj")
+MESH_FILES = tuple(f"frame_*.{suffix}" for suffix in MESH_FORMATS)    # what write_meshes writes
 
 
 @dataclass
@@ -76,8 +78,12 @@ def animate(cfg: DictConfig, expressions: ExpressionTrack, rig: HeadNeckModel, n
         tau = np.zeros(len(resampled))
     if cfg.swallow_template:
         template = read_template(cfg.swallow_template)
-        tau = insert_swallows(tau, resampled.time, template, list(cfg.swallow_at),
-                              cfg.swallow_duration_scale, cfg.swallow_amplitude_scale)
+        playback = config_dataclass(SwallowConfig, cfg.swallow_playback, "swallow_playback (configs/infer.yaml)")
+        try:
+            tau = insert_swallows(tau, resampled.time, template, as_list(cfg.swallow_at),
+                                  as_list(cfg.swallow_duration_scale), as_list(cfg.swallow_amplitude_scale), playback)
+        except ValueError as e:  # an onset outside the take, scales that do not match the onsets
+            raise InputError(f"swallow_at={as_list(cfg.swallow_at)} in {expressions.source}: {e}") from None
     theta = np.zeros((len(resampled), rig.num_joints, 3), dtype=np.float32)
     if neck_model is not None:
         if resampled.head_ypr is None:
@@ -95,7 +101,7 @@ def write_meshes(folder: str | Path, rig: HeadNeckModel, animation: Animation, e
     """Pose the rig for every frame and write ``frame_00000.<mesh_format>`` ... into ``folder``."""
     if mesh_format not in MESH_FORMATS:
         raise InputError(f"mesh_format={mesh_format}: expected one of {', '.join(MESH_FORMATS)}")
-    folder = Path(folder)
+    folder = fresh_output_folder(folder, MESH_FILES, "meshes")
     faces = rig.faces.numpy()
     paths = []
     count = len(animation.time)
@@ -117,10 +123,22 @@ def write_meshes(folder: str | Path, rig: HeadNeckModel, animation: Animation, e
     return paths
 
 
-def run(cfg: DictConfig) -> Animation:
+def check_request(cfg: DictConfig) -> None:
+    """Settings that can be wrong before anything is read or written: InputError naming the keys."""
     if not (cfg.out or cfg.theta_out or cfg.meshes):
         raise InputError("nothing to write: give out=tau.csv, theta_out=theta.npy and/or meshes=folder/")
-    expressions = read_expressions(cfg.expressions, fps=cfg.fps)
+    if bool(cfg.swallow_template) != bool(as_list(cfg.swallow_at)):
+        raise InputError("swallows need both swallow_template=template.csv and swallow_at=[t1,...] (seconds); "
+                         f"got swallow_template={cfg.swallow_template}, swallow_at={as_list(cfg.swallow_at)}")
+    if cfg.meshes:
+        if cfg.mesh_format not in MESH_FORMATS:
+            raise InputError(f"mesh_format={cfg.mesh_format}: expected one of {', '.join(MESH_FORMATS)}")
+        fresh_output_folder(cfg.meshes, MESH_FILES, "meshes")
+
+
+def run(cfg: DictConfig) -> Animation:
+    check_request(cfg)
+    expressions = read_expressions(cfg.expressions, fps=cfg.fps, timecode_fps=cfg.timecode_fps)
     if expressions.missing:
         print(f"{cfg.expressions}: no column for {', '.join(expressions.missing)} (left at 0)")
     if cfg.head2neck:  # the rig it was trained with, unless rig= says otherwise

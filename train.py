@@ -4,37 +4,84 @@ The loop is task-agnostic; ``tasks/<name>.py`` supplies the model, batches,
 losses and evaluation.  Each run writes to its hydra run directory
 (``runs/<task>/<timestamp>`` unless ``hydra.run.dir=...``):
 
-- ``checkpoints/last.pt``: model, optimiser, scheduler and step, written
-  atomically every ``trainer.checkpoint_every`` steps and at the end;
-  ``resume=true`` with the same ``hydra.run.dir`` continues from it;
+- ``checkpoints/last.pt``: model, optimiser, scheduler, step and the resolved
+  config, written atomically every ``trainer.checkpoint_every`` steps and at
+  the end; ``resume=true`` with the same ``hydra.run.dir`` continues from it.
+  The resumed run's config must equal the checkpoint's except for the
+  run-control keys (``RUN_CONTROL_KEYS``: when to stop, log, evaluate and save,
+  threads, the progress bar), else InputError listing the differences;
 - ``metrics.csv``: ``step,split,name,value`` rows (train losses, validation);
+  on resume the rows after the checkpoint's step (logged before an
+  interruption, and about to be logged again) are dropped;
 - ``eval.json``: the final evaluation, with the task's baselines.
 
-Reproducibility: step ``s`` seeds torch with ``seed * 1_000_003 + s`` before
-drawing its batch and running the model, so the same config gives the same
-weights, and an interrupted run resumed from a checkpoint gives the same
-weights as an uninterrupted one.
+Reproducibility: the model is initialised after ``torch.manual_seed(seed)``;
+step ``s`` seeds torch's global generator (dropout, the model's own draws) and
+the generator of its batch with two independent seeds of
+``numpy.random.SeedSequence([seed, s])`` (:func:`step_seeds`), so the same
+config gives the same weights, and an interrupted run resumed from a
+checkpoint gives the same weights as an uninterrupted one.
 """
 from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
 import hydra
+import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 import tasks
-from data.io import write_text
-from models.checkpoint import load_checkpoint, save_checkpoint
+from data.io import InputError, write_text
+from models.checkpoint import load_checkpoint, load_state, save_checkpoint
+
+# Config keys a resumed run may change (configs/trainer/*.yaml): they steer the run, not what it computes.
+RUN_CONTROL_KEYS = ("resume", "trainer.stop_after", "trainer.progress", "trainer.threads", "trainer.log_every",
+                    "trainer.eval_every", "trainer.checkpoint_every")
 
 
-def step_seed(seed: int, step: int) -> int:
-    return (seed * 1_000_003 + step) % (2**63 - 1)
+def step_seeds(seed: int, step: int) -> tuple[int, int]:
+    """(torch's global seed, the batch generator's seed) for training step ``step``: two independent
+    64-bit seeds drawn from ``numpy.random.SeedSequence([seed, step])``."""
+    global_seed, batch_seed = np.random.SeedSequence([seed, step]).generate_state(2, np.uint64)
+    return int(global_seed), int(batch_seed)
+
+
+def flatten(tree: dict, prefix: str = "") -> dict:
+    """Nested dicts -> {dotted key: leaf value} (lists are leaves)."""
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def check_resumable(state: dict, cfg: DictConfig, path: Path) -> None:
+    """InputError unless the checkpoint ``state`` was written by this task with the same config, up to
+    ``RUN_CONTROL_KEYS``; the message lists each differing dotted key with its old and new value."""
+    for key in ("config", "optimizer", "scheduler", "step"):
+        if key not in state:
+            raise InputError(f"{path}: checkpoint has no '{key}' entry, so it cannot be resumed; expected one "
+                             f"written by train.py")
+    if state["task"] != cfg.task.name:
+        raise InputError(f"{path}: checkpoint of task '{state['task']}', but resume=true runs task "
+                         f"'{cfg.task.name}'")
+    old, new = flatten(state["config"]), flatten(OmegaConf.to_container(cfg, resolve=True))
+    absent = "<absent>"
+    changed = [f"{key}: {old.get(key, absent)!r} -> {new.get(key, absent)!r}" for key in sorted(set(old) | set(new))
+               if key not in RUN_CONTROL_KEYS and old.get(key, absent) != new.get(key, absent)]
+    if changed:
+        raise InputError(f"{path}: resume=true with a config that differs from the checkpoint's "
+                         f"({'; '.join(changed)}); only {', '.join(RUN_CONTROL_KEYS)} may change: "
+                         f"resume with the run's settings or start a new run")
 
 
 def lr_factor(step: int, warmup: int, total: int, min_factor: float) -> float:
@@ -48,10 +95,26 @@ def lr_factor(step: int, warmup: int, total: int, min_factor: float) -> float:
 class MetricsLog:
     """Append-only ``step,split,name,value`` CSV (a row per number, so tasks may log anything)."""
 
+    HEADER = "step,split,name,value\n"
+
     def __init__(self, path: Path):
         self.path = path
         if not path.exists():
-            path.write_text("step,split,name,value\n")
+            write_text(path, self.HEADER)
+
+    def truncate(self, step: int) -> None:
+        """Keep the rows of steps up to ``step`` except the final evaluation (rewritten atomically): what a
+        run resumed from the checkpoint of ``step`` has not logged again yet."""
+        lines = self.path.read_text().splitlines(keepends=True)
+        kept = [self.HEADER]
+        for number, line in enumerate(lines[1:], start=2):
+            cells = line.rstrip("\n").split(",")
+            if len(cells) != 4 or not cells[0].isdigit():
+                raise InputError(f"{self.path}: line {number} is {line.strip()!r}, expected step,split,name,value "
+                                 f"with an integer step")
+            if int(cells[0]) <= step and cells[1] != "final":
+                kept.append(line)
+        write_text(self.path, "".join(kept))
 
     def log(self, step: int, split: str, metrics: dict[str, float]) -> None:
         with open(self.path, "a") as f:
@@ -65,6 +128,14 @@ def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     run_dir.mkdir(parents=True, exist_ok=True)
     if trainer.threads:
         torch.set_num_threads(int(trainer.threads))
+    checkpoint_path = run_dir / "checkpoints" / "last.pt"
+    state = None
+    if cfg.resume:
+        if not checkpoint_path.exists():
+            raise InputError(f"{checkpoint_path}: not found, so resume=true has nothing to continue; pass "
+                             f"hydra.run.dir=<the run's directory>")
+        state = load_checkpoint(checkpoint_path)
+        check_resumable(state, cfg, checkpoint_path)
     torch.manual_seed(cfg.seed)
     task = tasks.build(cfg)
     model = task.model
@@ -74,17 +145,13 @@ def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda s: lr_factor(s, cfg.optim.warmup_steps, trainer.max_steps, cfg.optim.min_lr_factor)
     )
-    checkpoint_path = run_dir / "checkpoints" / "last.pt"
     start = 0
-    if cfg.resume:
-        if not checkpoint_path.exists():
-            raise FileNotFoundError(f"resume=true but {checkpoint_path} does not exist; pass hydra.run.dir=<run dir>")
-        state = load_checkpoint(checkpoint_path)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        start = int(state["step"])
     log = MetricsLog(run_dir / "metrics.csv")
+    if state is not None:
+        for name, part in (("model", model), ("optimizer", optimizer), ("scheduler", scheduler)):
+            load_state(part, state[name], checkpoint_path, name)
+        start = int(state["step"])
+        log.truncate(start)
 
     def save(step: int) -> None:
         save_checkpoint(checkpoint_path, {
@@ -100,9 +167,9 @@ def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     count = 0
     started = time.perf_counter()
     for step in progress:
-        seed = step_seed(cfg.seed, step)
-        torch.manual_seed(seed)
-        batch = task.batch(step, torch.Generator().manual_seed(seed))
+        global_seed, batch_seed = step_seeds(int(cfg.seed), step)
+        torch.manual_seed(global_seed)
+        batch = task.batch(step, torch.Generator().manual_seed(batch_seed))
         model.train()
         loss, metrics = task.loss(batch, step)
         optimizer.zero_grad(set_to_none=True)
@@ -143,7 +210,11 @@ def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
 
 @hydra.main(version_base=None, config_path="configs", config_name="train")
 def main(cfg: DictConfig) -> None:
-    fit(cfg, Path(HydraConfig.get().runtime.output_dir))
+    try:
+        fit(cfg, Path(HydraConfig.get().runtime.output_dir))
+    except InputError as e:  # bad data or a refused resume: the message, status 2, no traceback (data.cli)
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

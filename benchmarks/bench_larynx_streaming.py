@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 def default_model():
     config = OmegaConf.to_container(OmegaConf.load(REPO / "configs" / "model" / "larynx_transformer.yaml"))
     torch.manual_seed(0)
-    return build_model({**config, "fps": 30.0}).eval()
+    return build_model({**config, "fps": 30.0, "subjects": [], "tau_mean": 0.0, "tau_scale": 0.01}).eval()
 
 
 def frames_per_second(run, frames: int, repeats: int = 3) -> float:

@@ -125,8 +125,9 @@ class RigData:
         try:
             with np.load(path, allow_pickle=False) as z:
                 stored = {k: z[k] for k in z.files}
-        except (ValueError, OSError) as e:
-            raise InputError(f"{path}: not a rig file ({e})") from None
+        except Exception as e:  # numpy and zipfile raise many types for a truncated or damaged archive
+            raise InputError(f"{path}: not a rig file, or a damaged one ({type(e).__name__}: {e}); "
+                             f"make one with python -m data.assets") from None
         version = int(stored.pop("format_version", -1))
         if version != RIG_FORMAT_VERSION:
             raise InputError(f"{path}: rig format version {version}, expected {RIG_FORMAT_VERSION}; re-run data.assets")

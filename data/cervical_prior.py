@@ -72,6 +72,8 @@ Generating process
 Real sequences: :func:`load_theta_sequences` reads HACK-layout theta arrays
 (``data/theta_list.npy`` of the release: ``[T,8,3]`` axis-angle radians per
 joint in its bone frame, ``models.rig`` convention), a file or a folder of them.
+They carry no frame rate, and need none: their one user, the head-to-neck
+mapping, is per frame.
 """
 from __future__ import annotations
 
@@ -124,6 +126,24 @@ class PriorConfig:
     recruitment_sigma: float = 0.3     # per-person jitter of the recruitment k
     coupling_sigma: float = 0.2        # per-person log-jitter of the coupling ratios
     kind_weights: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.4)  # nod, turn, tilt, combo
+
+    def __post_init__(self) -> None:
+        """ValueError naming the first field out of range."""
+        for name in ("fps", "seconds", "range_scale_median"):
+            if not float(getattr(self, name)) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if round(self.seconds * self.fps) < 2:
+            raise ValueError(f"seconds * fps = {self.seconds * self.fps:g} frames per sequence, expected at least 2")
+        for name in ("range_scale_sigma", "recruitment_sigma", "coupling_sigma"):
+            if not float(getattr(self, name)) >= 0:
+                raise ValueError(f"{name} must be a non-negative spread, got {getattr(self, name)}")
+        if not 0 < float(self.range_scale_min) <= 1:
+            raise ValueError(f"range_scale_min must be in (0, 1] (the published range is the envelope), got "
+                             f"{self.range_scale_min}")
+        weights = np.asarray(self.kind_weights, dtype=float)
+        if weights.shape != (len(MOTION_KINDS),) or not (weights >= 0).all() or not weights.sum() > 0:
+            raise ValueError(f"kind_weights must be {len(MOTION_KINDS)} non-negative weights ({', '.join(MOTION_KINDS)}) "
+                             f"with a positive sum, got {self.kind_weights}")
 
 
 @dataclass
@@ -323,10 +343,9 @@ def head_rotations(rig, theta: torch.Tensor | np.ndarray, chunk: int = 65536) ->
 
 @dataclass
 class ThetaSequence:
-    """A real pose sequence: theta [T,J,3] float32 axis-angle radians (bone frames), at ``fps``."""
+    """A real pose sequence: theta [T,J,3] float32 axis-angle radians (bone frames), read from ``source``."""
 
     theta: np.ndarray
-    fps: float
     source: str
 
 
@@ -337,7 +356,7 @@ def theta_sequence_layout(num_joints: int = NUM_JOINTS) -> str:
     return f"cervical poses [T,{num_joints},3] (axis-angle radians per joint, HACK's data/theta_list.npy layout)"
 
 
-def load_theta_sequence(path: str | os.PathLike, fps: float, num_joints: int = NUM_JOINTS) -> ThetaSequence:
+def load_theta_sequence(path: str | os.PathLike, num_joints: int = NUM_JOINTS) -> ThetaSequence:
     """One ``.npy`` theta sequence ``[T,num_joints,3]``; bad shapes or values raise InputError naming the file."""
     path = Path(path)
     expected = theta_sequence_layout(num_joints)
@@ -349,23 +368,21 @@ def load_theta_sequence(path: str | os.PathLike, fps: float, num_joints: int = N
         frame, joint = np.argwhere(norms > MAX_JOINT_ANGLE + 1e-3)[0]
         raise InputError(f"{path}: frame {frame}, joint {joint}: rotation of {norms[frame, joint]:.3g} rad, "
                          f"expected axis-angle radians (at most pi); degrees?")
-    if not fps > 0:
-        raise InputError(f"{path}: fps must be positive, got {fps}")
-    return ThetaSequence(theta.astype(np.float32), float(fps), str(path))
+    return ThetaSequence(theta.astype(np.float32), str(path))
 
 
-def load_theta_sequences(path: str | os.PathLike, fps: float, num_joints: int = NUM_JOINTS) -> list[ThetaSequence]:
+def load_theta_sequences(path: str | os.PathLike, num_joints: int = NUM_JOINTS) -> list[ThetaSequence]:
     """A ``.npy`` file or a folder of them (searched recursively, sorted); each must be a theta sequence."""
     path = Path(path)
     if path.is_dir():
         files = sorted(path.rglob("*.npy"))
         if not files:
             raise InputError(f"{path}: folder holds no .npy files; expected {theta_sequence_layout(num_joints)}")
-        return [load_theta_sequence(f, fps, num_joints) for f in files]
+        return [load_theta_sequence(f, num_joints) for f in files]
     if not path.exists():
         raise InputError(f"{path}: not found; expected a .npy file or a folder of "
                          f"{theta_sequence_layout(num_joints)}")
     if path.suffix.lower() != ".npy":
         raise InputError(f"{path}: unsupported format '{path.suffix}', expected .npy "
                          f"{theta_sequence_layout(num_joints)}")
-    return [load_theta_sequence(path, fps, num_joints)]
+    return [load_theta_sequence(path, num_joints)]

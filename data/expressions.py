@@ -15,6 +15,11 @@ Readable formats (:func:`read_expressions`):
 - a HACK CSV: columns named by the 55 HACK names, same time columns;
 - a header-less CSV of 55 numbers per row, or a ``.npy`` array ``[T,55]``, in
   HACK order (these need ``fps``).
+
+A rate the reader needs and cannot find is asked for by the caller's config
+key: ``read_expressions(..., fps_key="expressions_fps")`` makes the error say
+``give expressions_fps=...`` (default ``fps``); the timecode rate is
+``timecode_fps``.
 """
 from __future__ import annotations
 
@@ -113,7 +118,9 @@ def parse_timecode(codes: list[str], path: Path, rate: float | None = None,
     """Seconds from ``HH:MM:SS:FF[.fff]`` timecodes.
 
     The timecode rate (frames per second of ``FF``) is ``rate`` if given, else
-    the smallest standard rate above the largest frame number seen.
+    the smallest standard rate above the largest frame number seen.  A take
+    whose frame numbers all stay below 23 (under one second) fits every
+    standard rate: that is an InputError asking for ``timecode_fps=...``.
     """
     parts = []
     for i, code in enumerate(codes):
@@ -124,6 +131,11 @@ def parse_timecode(codes: list[str], path: Path, rate: float | None = None,
     hms = np.array(parts)
     if rate is None:
         top = np.floor(hms[:, 3]).max()
+        if top < 23:
+            raise InputError(
+                f"{path}: column 'Timecode': frame numbers only reach {top:g}, so the timecode rate is ambiguous "
+                f"(24, 25, 30, ... fps all fit a take under one second); give timecode_fps=..."
+            )
         rate = next((r for r in (24, 25, 30, 48, 50, 60, 120) if r > top), None)
         if rate is None:
             raise InputError(f"{path}: timecode frame {top:g} exceeds 120 fps; give timecode_fps=...")
@@ -132,7 +144,8 @@ def parse_timecode(codes: list[str], path: Path, rate: float | None = None,
     return seconds - seconds[0]
 
 
-def _time_axis(table: CsvTable, fps: float | None, timecode_fps: float | None) -> tuple[np.ndarray, float]:
+def _time_axis(table: CsvTable, fps: float | None, timecode_fps: float | None,
+               fps_key: str) -> tuple[np.ndarray, float]:
     path = table.path
     lower = {h.lower(): h for h in table.header}
     if "timecode" in lower:
@@ -143,12 +156,12 @@ def _time_axis(table: CsvTable, fps: float | None, timecode_fps: float | None) -
         time = time - time[0]
     elif "frame" in lower:
         if fps is None:
-            raise InputError(f"{path}: column 'frame' but no time column; give fps=...")
+            raise InputError(f"{path}: column 'frame' but no time column; give {fps_key}=...")
         frame = table.numeric(lower["frame"])
         time = (frame - frame[0]) / fps
     else:
         if fps is None:
-            raise InputError(f"{path}: no 'Timecode', 'time' or 'frame' column; give fps=...")
+            raise InputError(f"{path}: no 'Timecode', 'time' or 'frame' column; give {fps_key}=...")
         time = np.arange(len(table)) / fps
     steps = np.diff(time)
     if (steps <= 0).any():
@@ -156,27 +169,28 @@ def _time_axis(table: CsvTable, fps: float | None, timecode_fps: float | None) -
         raise InputError(f"{path}: time does not increase at {_row(table.lines, i)} ({time[i]:g} s after {time[i - 1]:g} s)")
     if fps is None:
         if len(time) < 2:
-            raise InputError(f"{path}: one row only; give fps=...")
+            raise InputError(f"{path}: one row only; give {fps_key}=...")
         fps = estimate_fps(time)
     return time, float(fps)
 
 
-def _read_headerless(path: Path, fps: float | None) -> ExpressionTrack:
-    try:
-        psi = np.loadtxt(path, delimiter=",", ndmin=2)
-    except ValueError as e:
-        raise InputError(f"{path}: not a table of numbers ({e})") from None
-    if psi.shape[1] != NUM_EXPRESSIONS:
-        raise InputError(f"{path}: {psi.shape[1]} columns without a header, expected 55 in HACK order")
+def _read_headerless(path: Path, fps: float | None, fps_key: str) -> ExpressionTrack:
+    table = CsvTable(path, columns=EXPRESSION_NAMES)  # numbers, finite, 55 per line: errors name line and column
     if fps is None:
-        raise InputError(f"{path}: a header-less table carries no frame rate; give fps=...")
-    _check_weights(psi, path, EXPRESSION_NAMES)
+        raise InputError(f"{path}: a header-less table carries no frame rate; give {fps_key}=...")
+    psi = np.stack([table.numeric(name) for name in EXPRESSION_NAMES], axis=1)
+    _check_weights(psi, path, EXPRESSION_NAMES, table.lines)
     return ExpressionTrack(psi.astype(np.float32), np.arange(len(psi)) / fps, float(fps), source=str(path))
 
 
 def read_expressions(path: str | os.PathLike, fps: float | None = None,
-                     timecode_fps: float | None = None) -> ExpressionTrack:
-    """Read an expression recording (Live Link Face, ARKit, HACK CSV, or ``.npy``) into the HACK space."""
+                     timecode_fps: float | None = None, fps_key: str = "fps") -> ExpressionTrack:
+    """Read an expression recording (Live Link Face, ARKit, HACK CSV, or ``.npy``) into the HACK space.
+
+    ``fps``: the rate of a recording without time stamps (header-less CSV, ``.npy``, a ``frame``
+    column); ``timecode_fps``: the rate of Live Link Face timecode frames (else guessed from the
+    frame numbers); ``fps_key``: the caller's config key for ``fps``, named in errors.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: file not found")
@@ -185,7 +199,7 @@ def read_expressions(path: str | os.PathLike, fps: float | None = None,
         if psi.shape[1] != NUM_EXPRESSIONS:
             raise InputError(f"{path}: array of shape {psi.shape}, expected expression weights [T,55]")
         if fps is None:
-            raise InputError(f"{path}: a .npy expression array carries no frame rate; give fps=...")
+            raise InputError(f"{path}: a .npy expression array carries no frame rate; give {fps_key}=...")
         _check_weights(psi, path, EXPRESSION_NAMES)
         return ExpressionTrack(psi.astype(np.float32), np.arange(len(psi)) / fps, float(fps), source=str(path))
     if path.suffix.lower() != ".csv":
@@ -199,11 +213,14 @@ def read_expressions(path: str | os.PathLike, fps: float | None = None,
     except ValueError:
         headerless = False
     if headerless:  # outside the try: InputError is a ValueError and must reach the caller
-        return _read_headerless(path, fps)
+        if len(first) != NUM_EXPRESSIONS:
+            raise InputError(f"{path}: {len(first)} columns without a header, expected 55 in HACK order")
+        return _read_headerless(path, fps, fps_key)
 
-    # Live Link Face writes "<timecode>,0" when tracking is lost: those frames are dropped
-    # (resampling to a uniform grid interpolates over them).
-    table = CsvTable(path, skip_row=lambda row: len(row) == 2 and row[1].strip() == "0")
+    # Live Link Face writes "<timecode>,0" under its wide header when tracking is lost: those frames are
+    # dropped (resampling to a uniform grid interpolates over them).  A two-column file keeps its rows.
+    header_width = len(first)
+    table = CsvTable(path, skip_row=lambda row: header_width > 2 and len(row) == 2 and row[1].strip() == "0")
     lower = {_PREFIX.sub("", h).lower(): h for h in table.header}
     psi = np.zeros((len(table), NUM_EXPRESSIONS), dtype=np.float64)
     used, missing = [], []
@@ -224,7 +241,7 @@ def read_expressions(path: str | os.PathLike, fps: float | None = None,
             + (" ..." if len(table.header) > 12 else "")
         )
     _check_weights(psi, path, columns, table.lines)
-    time, rate = _time_axis(table, fps, timecode_fps)
+    time, rate = _time_axis(table, fps, timecode_fps, fps_key)
     head = None
     if all(table.has(c) for c in HEAD_COLUMNS):
         head = np.stack([table.numeric(c) for c in HEAD_COLUMNS], axis=1)

@@ -10,7 +10,8 @@ Conventions owned here:
   larynx map (positive = up the neck, see ``models.rig``), sampled at an
   explicit ``fps``.  On disk it is a CSV with a ``tau`` column and a ``time``
   (seconds) or ``frame`` column (plus ``fps``), or a ``.npy`` vector with the
-  fps given by the caller.
+  fps given by the caller (who names its config key for it, ``fps_key``, in
+  the error when it is missing).
 """
 from __future__ import annotations
 
@@ -59,6 +60,21 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 def write_text(path: str | os.PathLike, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def fresh_output_folder(folder: str | os.PathLike, patterns: Sequence[str], key: str) -> Path:
+    """Create ``folder`` (and parents) for a run's many output files; InputError (naming ``key``, the
+    config key that chose it) if it already holds files matching ``patterns`` (globs) from an earlier run:
+    a reader of the folder would mix the two runs."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{key}={folder}: not a folder")
+    stale = sorted({p.name for pattern in patterns for p in folder.glob(pattern)}) if folder.is_dir() else []
+    if stale:
+        raise InputError(f"{key}={folder}: already holds {len(stale)} output file(s) of an earlier run "
+                         f"({', '.join(stale[:3])}{', ...' if len(stale) > 3 else ''}); give a new or empty folder")
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
 
 
 def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
@@ -118,32 +134,42 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> None:
 
 
 class CsvTable:
-    """A CSV file with a header row, read as text; numeric access with precise errors.
+    """A CSV file (UTF-8, with or without a byte-order mark) read as text; numeric access with precise errors.
 
-    ``skip_row(cells) -> bool`` drops data rows before validation (e.g. a
-    tracker's "lost" rows); their line numbers are kept in ``skipped_lines``.
-    Errors name the file, the column and the line of the file.
+    The first row is the header, unless ``columns`` names the columns of a
+    header-less file (every row is then data).  ``skip_row(cells) -> bool``
+    drops data rows before validation (e.g. a tracker's "lost" rows); their
+    line numbers are kept in ``skipped_lines``.  Errors name the file, the
+    column and the line of the file.
     """
 
-    def __init__(self, path: str | os.PathLike, skip_row=None):
+    def __init__(self, path: str | os.PathLike, skip_row=None, columns: Sequence[str] | None = None):
         self.path = Path(path)
         if not self.path.is_file():
             raise InputError(f"{self.path}: file not found")
         with open(self.path, newline="", encoding="utf-8-sig") as f:
             numbered = [(n + 1, row) for n, row in enumerate(csv.reader(f)) if row and any(c.strip() for c in row)]
-        if not numbered:
-            raise InputError(f"{self.path}: empty file, expected a header row and data rows")
-        self.header = [h.strip() for h in numbered[0][1]]
-        body = numbered[1:]
+        if columns is None:
+            if not numbered:
+                raise InputError(f"{self.path}: empty file, expected a header row and data rows")
+            self.header = [h.strip() for h in numbered[0][1]]
+            body = numbered[1:]
+            where = "below the header"
+            width = "the header has"
+        else:
+            self.header = list(columns)
+            body = numbered
+            where = "(a header-less table)"
+            width = "expected"
         self.skipped_lines = [n for n, row in body if skip_row is not None and skip_row(row)]
         body = [(n, row) for n, row in body if skip_row is None or not skip_row(row)]
         if not body:
-            raise InputError(f"{self.path}: no data rows below the header")
+            raise InputError(f"{self.path}: no data rows {where}")
         self.lines = [n for n, _ in body]
         self.rows = [row for _, row in body]
         for n, row in body:
             if len(row) != len(self.header):
-                raise InputError(f"{self.path}: line {n} has {len(row)} cells, the header has {len(self.header)}")
+                raise InputError(f"{self.path}: line {n} has {len(row)} cells, {width} {len(self.header)}")
         self._index = {name: i for i, name in enumerate(self.header)}
 
     def __len__(self) -> int:
@@ -246,6 +272,18 @@ def check_increasing(time: np.ndarray, table: CsvTable, column: str) -> None:
         )
 
 
+def as_list(value) -> list:
+    """A config value that may be one item or a list (``at=2.0``, ``at=[1,2]``, ``inputs=a.csv``) as a list.
+
+    None is the empty list; a string is one item (not its characters).
+    """
+    if value is None:
+        return []
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        return [value]
+    return list(value)
+
+
 def split_by_file(items: Sequence, val_fraction: float, seed: int, what: str = "file") -> tuple[list, list]:
     """Split recordings by file: (train, validation) lists of ``items``, no item in both.
 
@@ -263,13 +301,19 @@ def split_by_file(items: Sequence, val_fraction: float, seed: int, what: str = "
 
 
 def read_tau_track(path: str | os.PathLike, fps: float | None = None,
-                   min_confidence: float | None = None) -> TauTrack:
+                   min_confidence: float | None = None, fps_key: str = "fps") -> TauTrack:
     """Read a tau track from CSV (``tau`` + ``time`` or ``frame`` [+ ``fps``]) or ``.npy``.
 
-    ``fps`` overrides the file's rate; it is required for ``.npy`` and for a
-    CSV with only a ``frame`` column and no ``fps`` column.  With
+    ``fps`` is the frame rate of a file that carries none: a ``.npy``, a CSV
+    with a ``frame`` but no ``time`` or ``fps`` column, or a one-row CSV; a
+    file's own rate (its ``fps`` column, else its ``time`` stamps) wins.
+    ``fps_key`` is the caller's name for that setting (its config key), named
+    in the error when the rate is needed and missing.  With
     ``min_confidence``, rows of a CSV whose ``confidence`` column (the
     tracker's) is below it are dropped: the track then has gaps in time.
+    Files without a ``confidence`` column are read whole.  A tracker CSV
+    whose ``tau`` is NaN on every row (``tau_px`` only: no calibration) is
+    reported as such.
     """
     path = Path(path)
     if path.suffix.lower() == ".npy":
@@ -279,7 +323,7 @@ def read_tau_track(path: str | os.PathLike, fps: float | None = None,
                 raise InputError(f"{path}: array of shape {tau.shape}, expected a tau track [T] or [T,1]")
             tau = tau[:, 0]
         if fps is None:
-            raise InputError(f"{path}: a .npy tau track carries no frame rate; give fps=...")
+            raise InputError(f"{path}: a .npy tau track carries no frame rate; give {fps_key}=...")
         return TauTrack(tau, np.arange(len(tau)) / fps, float(fps), str(path))
     if path.suffix.lower() != ".csv":
         raise InputError(f"{path}: unsupported tau track format '{path.suffix}', expected .csv or .npy")
@@ -291,26 +335,35 @@ def read_tau_track(path: str | os.PathLike, fps: float | None = None,
         if keep.sum() < 2:
             raise InputError(f"{path}: fewer than 2 rows with confidence >= {min_confidence:g}")
         table.keep_rows(keep)
+    if table.has("tau") and table.has("tau_px") and all(v.lower() == "nan" for v in table.text("tau")):
+        raise InputError(
+            f"{path}: column 'tau' is NaN on every row: the track has no calibration (tau_px only); "
+            f"run python -m motion.track with px_per_tau=<pixels per tau unit>, or with cm_per_px=... kernel=rig "
+            f"(px_per_tau=auto from the rig)"
+        )
     tau = table.numeric("tau")
-    file_fps = None
+    rate = None
     if table.has("fps"):
         values = table.numeric("fps")
         if not np.allclose(values, values[0]) or values[0] <= 0:
             raise InputError(f"{path}: column 'fps' must hold one positive value, found {np.unique(values)[:5]}")
-        file_fps = float(values[0])
-    rate = fps if fps is not None else file_fps
+        rate = float(values[0])
     if table.has("time"):
         time = table.numeric("time")
         check_increasing(time, table, "time")
         if rate is None:
-            if len(time) < 2:
-                raise InputError(f"{path}: one row only; give fps=... to know its frame rate")
-            rate = estimate_fps(time)
+            if len(time) >= 2:
+                rate = estimate_fps(time)
+            elif fps is not None:
+                rate = fps
+            else:
+                raise InputError(f"{path}: one row only; give {fps_key}=... to know its frame rate")
     elif table.has("frame"):
         frame = table.numeric("frame")
         check_increasing(frame, table, "frame")
+        rate = rate if rate is not None else fps
         if rate is None:
-            raise InputError(f"{path}: column 'frame' without a 'time' or 'fps' column; give fps=...")
+            raise InputError(f"{path}: column 'frame' without a 'time' or 'fps' column; give {fps_key}=...")
         time = frame / rate
     else:
         raise InputError(f"{path}: expected a 'time' (seconds) or 'frame' column beside 'tau'")

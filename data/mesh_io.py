@@ -71,14 +71,23 @@ def read_obj(path: str | os.PathLike, vertices_only: bool = False) -> ObjMesh:
             ft = np.array(tri_t) if len(tri_t) == len(tri_v) else None
     except ValueError:
         raise InputError(f"{path}: an 'f' record holds a non-integer index") from None
-    fv = np.where(fv < 0, fv + len(vertices) + 1, fv) - 1  # OBJ indices are 1-based; negatives count back
-    if fv.min() < 0 or fv.max() >= len(vertices):
-        raise InputError(f"{path}: a face references vertex {fv.max() + 1}, but the file has {len(vertices)}")
+    face_label = "'f' record" if len(sizes) == 1 else "triangle (polygons fan-triangulated)"
+    fv = _zero_based(fv, len(vertices), path, "vertex", face_label)
     if ft is not None:
-        ft = np.where(ft < 0, ft + len(uv) + 1, ft) - 1
-        if ft.min() < 0 or ft.max() >= len(uv):
-            raise InputError(f"{path}: a face references texture coordinate {ft.max() + 1}, the file has {len(uv)}")
+        ft = _zero_based(ft, len(uv), path, "texture coordinate", face_label)
     return ObjMesh(vertices, fv, uv if len(uv) else None, ft)
+
+
+def _zero_based(indices: np.ndarray, count: int, path: Path, what: str, face_label: str) -> np.ndarray:
+    """OBJ indices as written [F,k] (1-based; negatives count back from the end) -> 0-based, checked
+    against ``count``; the error names the first bad index as written and its face (1-based)."""
+    converted = np.where(indices < 0, indices + count + 1, indices) - 1
+    bad = (indices == 0) | (converted < 0) | (converted >= count)
+    if bad.any():
+        face, corner = np.argwhere(bad)[0]
+        raise InputError(f"{path}: {face_label} {face + 1} references {what} {indices[face, corner]}, but the file "
+                         f"has {count} (OBJ indices run 1..{count}, or -1..-{count} counting back)")
+    return converted
 
 
 def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,

@@ -45,10 +45,13 @@ import numpy as np
 import torch
 
 from data.cli import config_dataclass, run_cli
-from data.io import InputError, TauTrack, save_npy, write_tau_track
+from data.io import InputError, TauTrack, fresh_output_folder, save_npy, write_tau_track
 from data.render import (DEFAULT_CM_PER_PX, DEFAULT_SIZE, Camera, NeckRenderer, decode_normals, encode_normals,
                          neck_camera, write_normal_image)
 from data.synthetic_tau import random_tau_trajectory
+
+SEQUENCE_FORMATS = ("png8", "png16", "exr", "npy")
+SEQUENCE_FILES = ("frame_*", "normals.npy", "truth.csv")     # what write_sequence writes into its folder
 
 
 @dataclass
@@ -156,19 +159,20 @@ def make_sequence(rig, config: SequenceConfig, seed: int, chunk: int = 8) -> Nor
 
 
 def write_sequence(folder: str | Path, sequence: NormalSequence, image_format: str = "png8") -> list[Path]:
-    """Write frames (``png8``, ``png16``, ``exr`` images or one ``npy`` stack) and ``truth.csv`` into ``folder``."""
-    folder = Path(folder)
+    """Write frames (``png8``, ``png16``, ``exr`` images or one ``npy`` stack) and ``truth.csv`` into
+    ``folder`` (new, or without such files: ``data.io.fresh_output_folder``)."""
+    if image_format not in SEQUENCE_FORMATS:
+        raise InputError(f"format={image_format}: expected {', '.join(SEQUENCE_FORMATS)}")
+    folder = fresh_output_folder(folder, SEQUENCE_FILES, "out")
     written = []
     if image_format == "npy":
         written.append(folder / "normals.npy")
         save_npy(written[-1], sequence.normals)
-    elif image_format in ("png8", "png16", "exr"):
+    else:
         suffix, bits = {"png8": (".png", 8), "png16": (".png", 16), "exr": (".exr", 8)}[image_format]
         for t, frame in enumerate(sequence.normals):
             written.append(folder / f"frame_{t:05d}{suffix}")
             write_normal_image(written[-1], frame, bits)
-    else:
-        raise InputError(f"format={image_format}: expected png8, png16, exr or npy")
     write_tau_track(folder / "truth.csv", TauTrack(sequence.tau, sequence.time, sequence.fps),
                     x_px=sequence.larynx_px[:, 0], y_px=sequence.larynx_px[:, 1],
                     eta=np.full(len(sequence), sequence.eta))
@@ -183,6 +187,9 @@ def run(cfg) -> NormalSequence:
     from models.rig import HeadNeckModel
 
     config = config_dataclass(SequenceConfig, cfg, "configs/normal_sequences.yaml", mixed=True)
+    if cfg.format not in SEQUENCE_FORMATS:
+        raise InputError(f"format={cfg.format}: expected {', '.join(SEQUENCE_FORMATS)}")
+    fresh_output_folder(cfg.out, SEQUENCE_FILES, "out")   # before rendering: fail fast on a used folder
     started = _time.perf_counter()
     sequence = make_sequence(HeadNeckModel.from_config(cfg.rig), config, int(cfg.seed))
     rendered = _time.perf_counter() - started

@@ -16,10 +16,14 @@ reads); ``python -m data.pairs track=track.csv expressions=take.csv out=pair.npz
 time on their overlap, resampled to one rate::
 
     python -m data.pairs track=track.csv expressions=take.csv out=pairs/take1.npz \\
-        [fps=30] [offset=0.25] [subject=anna] [track_fps=..] [expressions_fps=..]
+        [fps=30] [offset=0.25] [subject=anna] [min_confidence=0.3] [track_fps=..] [expressions_fps=..] \\
+        [timecode_fps=..]
 
 ``offset`` (seconds) is added to the track's time (a tracker that started 0.25 s after the face
-capture needs ``offset=0.25``); ``fps`` defaults to the expression recording's rate.
+capture needs ``offset=0.25``); ``fps`` is the pair's (output) rate, by default the expression
+recording's.  The inputs' own rates, where the files carry none, are ``track_fps`` (a ``.npy`` track or
+a CSV without ``time``/``fps`` columns), ``expressions_fps`` (header-less or ``.npy`` expressions) and
+``timecode_fps`` (a Live Link Face timecode too short to tell its rate).
 """
 from __future__ import annotations
 
@@ -171,8 +175,9 @@ def align_pair(track: TauTrack, expressions: ExpressionTrack, fps: float | None 
 
 def run(cfg: DictConfig) -> LarynxSequence:
     """``python -m data.pairs``: align, write and report."""
-    track = read_tau_track(cfg.track, fps=cfg.track_fps, min_confidence=cfg.min_confidence)
-    expressions = read_expressions(cfg.expressions, fps=cfg.expressions_fps)
+    track = read_tau_track(cfg.track, fps=cfg.track_fps, min_confidence=cfg.min_confidence, fps_key="track_fps")
+    expressions = read_expressions(cfg.expressions, fps=cfg.expressions_fps, timecode_fps=cfg.timecode_fps,
+                                   fps_key="expressions_fps")
     pair, time = align_pair(track, expressions, cfg.fps, float(cfg.offset),
                             None if cfg.subject is None else str(cfg.subject), Path(cfg.out).stem)
     save_pair(cfg.out, pair, time)

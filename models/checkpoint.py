@@ -3,7 +3,8 @@
 Layout of a checkpoint dict:
 ``task`` (name), ``model_config`` (dict for the task's ``build_model``),
 ``model`` (state dict), ``step``, and for resuming ``optimizer``,
-``scheduler``, ``config`` (the resolved run config).
+``scheduler``, ``config`` (the resolved run config).  Only plain containers, numbers, strings and
+tensors: checkpoints are read with ``torch.load(weights_only=True)``, which runs no pickled code.
 """
 from __future__ import annotations
 
@@ -27,9 +28,11 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     if not path.is_file():
         raise InputError(f"{path}: checkpoint not found")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for a corrupt file
         raise InputError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+    if not isinstance(state, dict):
+        raise InputError(f"{path}: holds a {type(state).__name__}, expected a checkpoint dict written by train.py")
     for key in ("task", "model_config", "model"):
         if key not in state:
             raise InputError(f"{path}: checkpoint has no '{key}' entry; expected one written by train.py")
@@ -43,6 +46,25 @@ def load_model(path: str | os.PathLike, task: str | None = None) -> tuple[nn.Mod
     state = load_checkpoint(path)
     if task is not None and state["task"] != task:
         raise InputError(f"{path}: checkpoint of task '{state['task']}', expected '{task}'")
-    model = task_module(state["task"]).build_model(state["model_config"])
-    model.load_state_dict(state["model"])
+    try:
+        module = task_module(state["task"])
+    except ValueError as e:  # an unknown task name
+        raise InputError(f"{path}: {e}") from None
+    try:
+        model = module.build_model(state["model_config"])
+    except ValueError as e:
+        raise InputError(f"{path}: checkpoint written by an incompatible version of the code: its model_config "
+                         f"does not build ({e})") from None
+    load_state(model, state["model"], path, "model")
     return model.eval(), state
+
+
+def load_state(part, state_dict: dict, path: str | os.PathLike, name: str) -> None:
+    """``part.load_state_dict(state_dict)`` (a module, optimiser or scheduler); a mismatch (missing or
+    unexpected keys, other shapes: a checkpoint of an older layout) is an InputError naming ``path``."""
+    try:
+        part.load_state_dict(state_dict)
+    except (RuntimeError, ValueError, KeyError) as e:
+        reason = " ".join(str(e).split())  # torch's message spans lines
+        raise InputError(f"{path}: checkpoint written by an incompatible version of the code: its {name} state "
+                         f"does not load ({reason})") from None

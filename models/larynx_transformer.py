@@ -39,16 +39,13 @@ from torch import Tensor, nn
 from data.expressions import NUM_EXPRESSIONS
 from data.io import InputError
 
-# Sizes come from configs/model/larynx_transformer.yaml (their one home, documented there); the
-# fields below come from the training data and are filled in by the task.
-DATA_DEFAULTS: dict = {
-    "fps": 30.0,       # frame rate of psi and tau (frames per second)
-    "subjects": [],    # training subject names; style index 0 = unknown subject
-    "tau_mean": 0.0,   # tau normalisation (UV units)
-    "tau_scale": 0.01,
-}
+# Sizes come from configs/model/larynx_transformer.yaml (their one home, documented there).
 SIZES = ("d_model", "n_heads", "n_layers", "d_ff", "window", "cross_window", "period", "expression_layers",
          "expression_kernel", "dropout", "use_eta")
+# From the training data, filled in by the task: the frame rate of psi and tau (frames per second), the
+# training subject names (style index i+1 is subjects[i], 0 the unknown subject), the tau normalisation
+# (UV units).
+DATA_KEYS = ("fps", "subjects", "tau_mean", "tau_scale")
 
 
 @contextlib.contextmanager
@@ -448,13 +445,14 @@ class LarynxStream:
 
 
 def build_model(model_config: dict) -> LarynxTransformer:
-    """The model for a config: every key of ``SIZES``, and optionally the ``DATA_DEFAULTS`` fields."""
-    missing = [k for k in SIZES if k not in model_config]
-    unknown = set(model_config) - set(SIZES) - set(DATA_DEFAULTS)
+    """The model for a config: exactly the keys of ``SIZES`` (configs/model/larynx_transformer.yaml) and
+    ``DATA_KEYS`` (from the training data); missing or unknown keys are an error."""
+    missing = [k for k in SIZES + DATA_KEYS if k not in model_config]
+    unknown = sorted(set(model_config) - set(SIZES) - set(DATA_KEYS))
     if missing or unknown:
-        raise ValueError(f"larynx transformer config: missing {missing}, unknown {sorted(unknown)} "
-                         f"(see configs/model/larynx_transformer.yaml)")
-    return LarynxTransformer({**DATA_DEFAULTS, **model_config})
+        raise ValueError(f"larynx transformer config: missing {missing}, unknown {unknown}; expected the sizes "
+                         f"{list(SIZES)} (configs/model/larynx_transformer.yaml) and the data's {list(DATA_KEYS)}")
+    return LarynxTransformer(model_config)
 
 
 def predict_tau(model: LarynxTransformer, psi: np.ndarray, subject: str | None = None,

@@ -179,7 +179,7 @@ class HeadNeckModel(nn.Module):
         near = occupied[np.clip(column, 0, width - 1)] | occupied[np.clip(column + 1, 0, width - 1)]
         self.register_buffer("larynx_vertices", torch.tensor(np.flatnonzero(near)))
         self.register_buffer("larynx_grid", grid[self.larynx_vertices].to(dtype))
-        self._chunk_plans: dict[int, list] = {}
+        self._chunk_plans: dict[tuple[int, torch.device], list] = {}
 
     # ------------------------------------------------------------------ constructors
 
@@ -245,10 +245,6 @@ class HeadNeckModel(nn.Module):
         """[J,3,3] rest world rotations of the anatomical joint frames (bone rest rotation @ axes)."""
         return self.rest_world[:, :3, :3] @ self.anatomical_axes
 
-    def joint_positions(self, theta: torch.Tensor) -> torch.Tensor:
-        """World positions of the joints (bone origins) [B,J,3]."""
-        return self.joint_transforms(theta)[..., :3, 3]
-
     # ------------------------------------------------------------------ geometry
 
     def larynx_region_offsets(self, tau: torch.Tensor, eta: torch.Tensor,
@@ -292,8 +288,12 @@ class HeadNeckModel(nn.Module):
         return torch.cat(parts, dim=1)
 
     def rest_shape(self, psi=None, tau=None, eta=None, beta=None, larynx_weights=None,
-                   rotations: torch.Tensor | None = None, batch: int = 1) -> torch.Tensor:
-        """The unposed shape T + B_S + B_E + B_P + L, [B,N,3]."""
+                   rotations: torch.Tensor | None = None) -> torch.Tensor:
+        """The unposed shape T + B_S + B_E + B_P + L, [B,N,3]: psi [B,E], tau [B], eta [B], beta [B,S],
+        larynx_weights [B,K], rotations [B,J,3,3] (for the pose correctives), each optional; B is the
+        inputs' batch (1 when none is given)."""
+        given = [x for x in (psi, tau, eta, beta, larynx_weights, rotations) if x is not None]
+        batch = given[0].shape[0] if given else 1
         coefficients = self.blend_coefficients(batch, psi, beta, rotations)
         shape = blend_shapes(coefficients, self.blend_basis, self.template.reshape(-1)).permute(2, 0, 1)
         tau, eta = self._larynx_inputs(batch, tau, eta)
@@ -323,15 +323,17 @@ class HeadNeckModel(nn.Module):
     # ------------------------------------------------------------------ helpers
 
     def _chunk_plan(self, size: int) -> list:
-        """Vertex ranges of ``size`` with the larynx-region vertices each holds (local index, region index)."""
-        if size not in self._chunk_plans:
+        """Vertex ranges of ``size`` with the larynx-region vertices each holds (local index, region index),
+        on the device of the buffers (cached per size and device, so ``.to(device)`` gets its own)."""
+        key = (size, self.larynx_vertices.device)
+        if key not in self._chunk_plans:
             plan, region = [], self.larynx_vertices
             for start in range(0, self.num_vertices, size):
                 stop = min(start + size, self.num_vertices)
                 inside = torch.nonzero((region >= start) & (region < stop)).reshape(-1)
                 plan.append((start, stop, region[inside] - start, inside))
-            self._chunk_plans[size] = plan
-        return self._chunk_plans[size]
+            self._chunk_plans[key] = plan
+        return self._chunk_plans[key]
 
     def _larynx_inputs(self, batch: int, tau, eta) -> tuple[torch.Tensor, torch.Tensor]:
         tau = self.template.new_zeros(batch) if tau is None else tau

@@ -74,15 +74,6 @@ def matrix_to_rot6d(matrix: torch.Tensor) -> torch.Tensor:
     return torch.cat([matrix[..., :, 0], matrix[..., :, 1]], dim=-1)
 
 
-def rot6d_to_matrix(rot6d: torch.Tensor) -> torch.Tensor:
-    """[..., 6] -> [..., 3, 3] by Gram-Schmidt on the two columns."""
-    a, b = rot6d[..., :3], rot6d[..., 3:]
-    x = F.normalize(a, dim=-1)
-    y = F.normalize(b - (x * b).sum(-1, keepdim=True) * x, dim=-1)
-    z = torch.cross(x, y, dim=-1)
-    return torch.stack([x, y, z], dim=-1)
-
-
 def quaternion_to_euler(quaternion: torch.Tensor) -> torch.Tensor:
     """[..., 4] (w, x, y, z), unit -> [..., 3] (ax, ay, az) with ``R = Rz(az) Ry(ay) Rx(ax)``."""
     roll, pitch, yaw = kc.euler_from_quaternion(*quaternion.unbind(-1))

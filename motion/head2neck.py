@@ -5,7 +5,9 @@
     python -m motion.head2neck checkpoint=... input=take.csv out=theta.npy        # Live Link Face / ARKit CSV
 
 Output: theta ``[T,8,3]`` float32 (axis-angle radians per joint in its bone frame, ``models.rig``),
-one row per input frame (a CSV keeps its own frames and rate; the rate is printed), written atomically.
+one row per input frame, written atomically.  A CSV is resampled to a uniform grid at its own rate from
+its first timestamp (Live Link Face drops lost-tracking rows; their frames are interpolated), so row t
+is time ``start + t / fps``; start and rate are printed.
 The model's output is made exact by the correction step (``models.head2neck.predict_theta``); the
 remaining head orientation error and any joints outside the limits are printed.
 
@@ -41,7 +43,9 @@ identity, ``(yaw, pitch, roll) = (HeadYaw, HeadPitch, HeadRoll)``.  Uncertain, h
   have (../shared/samples) hold radians: their eye yaw spans +-0.6, physiological only in radians
   (+-35 deg), and ``data.expressions`` reads head angles as radians.  Default ``units=rad``;
 - neutral: the angles are relative to the phone, so a subject not facing the camera squarely has an
-  offset; ``recenter=true`` makes the first frame the rest pose.
+  offset C: the captured orientation is M_t = C H_t, H_t the head's turn relative to the body.
+  ``recenter=true`` takes the first frame as the rest pose (H_0 = I, so C = M_0) and feeds
+  H_t = M_0^T M_t.
 """
 from __future__ import annotations
 
@@ -88,8 +92,8 @@ def head_rotations_from_ypr(ypr: np.ndarray, units: str = "rad", signs: tuple[fl
 
 
 def read_head_rotations(path: str | Path, input_format: str = "auto", units: str = "rad",
-                        signs: tuple[float, float, float] = (1.0, 1.0, 1.0), fps: float | None = None
-                        ) -> tuple[torch.Tensor, str]:
+                        signs: tuple[float, float, float] = (1.0, 1.0, 1.0), fps: float | None = None,
+                        timecode_fps: float | None = None) -> tuple[torch.Tensor, str]:
     """Head orientations [T,3,3] (float32) from a file, and a description of what was read."""
     path = Path(path)
     if input_format not in INPUT_FORMATS:
@@ -97,13 +101,18 @@ def read_head_rotations(path: str | Path, input_format: str = "auto", units: str
     if input_format == "auto" and path.suffix.lower() not in (".csv", ".npy"):
         raise InputError(f"{path}: unsupported input '{path.suffix}', expected .npy ([T,3,3] or [T,3]) or .csv")
     if input_format == "csv" or (input_format == "auto" and path.suffix.lower() == ".csv"):
-        track = read_expressions(path, fps=fps)
+        track = read_expressions(path, fps=fps, timecode_fps=timecode_fps)
         if track.head_ypr is None:
             raise InputError(f"{path}: no head rotation recorded (HeadYaw, HeadPitch, HeadRoll missing or all "
                              f"zero); expected a capture with head rotation")
-        description = f"{len(track)} frames of HeadYaw/HeadPitch/HeadRoll at {track.fps:g} fps"
-        return head_rotations_from_ypr(track.head_ypr, units, signs, str(path)), description
+        uniform = track.resampled(track.fps)
+        description = (f"{len(uniform)} frames of HeadYaw/HeadPitch/HeadRoll at {uniform.fps:g} fps from "
+                       f"{uniform.time[0]:.3f} s ({len(track)} rows, resampled to the uniform grid)")
+        return head_rotations_from_ypr(uniform.head_ypr, units, signs, str(path)), description
     array = load_npy(path, (2, 3), "head orientations [T,3,3] or yaw/pitch/roll [T,3]")
+    if len(array) == 0:
+        raise InputError(f"{path}: no frames (shape {array.shape}); expected head orientations [T,3,3] or "
+                         f"yaw/pitch/roll [T,3] with T >= 1")
     if input_format == "auto":
         input_format = "matrix" if array.ndim == 3 else "ypr"
     if input_format == "matrix":
@@ -125,15 +134,18 @@ def load_head2neck(checkpoint: str | Path, rig_path: str | Path | None = None) -
 
 
 def recentered(head: torch.Tensor) -> torch.Tensor:
-    """Orientations relative to the first frame: H_t H_0^T."""
-    return head @ head[0].T
+    """Orientations [T,3,3] relative to the first frame's, in the head's own frame: M_0^T M_t.
+
+    A capture M_t = C H_t holds the subject's offset C from the camera on the left (module doc);
+    with H_0 = I, M_0^T M_t = H_t: a nod stays a nod however the subject sat."""
+    return head[0].T @ head
 
 
 def run(cfg: DictConfig) -> np.ndarray:
     """The CLI's work: returns theta [T,J,3] and writes it to ``cfg.out``."""
     model, rig = load_head2neck(cfg.checkpoint, cfg.rig)
     signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
-    head, description = read_head_rotations(cfg.input, cfg.input_format, cfg.units, signs, cfg.fps)
+    head, description = read_head_rotations(cfg.input, cfg.input_format, cfg.units, signs, cfg.fps, cfg.timecode_fps)
     if cfg.recenter:
         head = recentered(head)
     theta = predict_theta(model, rig, head, int(cfg.iterations))

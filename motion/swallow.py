@@ -38,7 +38,12 @@ CLI (hydra, ``configs/swallow.yaml``)::
         [duration_scale=1.2] [amplitude_scale=0.8] [plot=play.png]
 
 Inputs are tau tracks (``data.io.read_tau_track``: CSV with ``tau`` and
-``time`` or ``frame`` [+ ``fps``], or ``.npy`` with ``npy_fps=...``).
+``time`` or ``frame`` [+ ``fps``], or ``.npy``); ``fps=...`` is the frame rate
+of files that carry none (``.npy``, a CSV with ``frame`` but no ``time`` or
+``fps`` column).  Tracker CSVs (``python -m motion.track``) lose the rows below
+``min_confidence`` (lost and rejected frames; the track is resampled over the
+gap).  ``inputs`` and ``at`` take one value or a list (``inputs=a.csv``,
+``at=2.0``).  A template file is what :func:`write_template` writes.
 """
 from __future__ import annotations
 
@@ -48,14 +53,14 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from scipy.interpolate import PchipInterpolator
 from scipy.ndimage import gaussian_filter1d, median_filter
 from scipy.signal import find_peaks
 
 from data.cli import config_dataclass, run_cli
-from data.io import (CsvTable, InputError, TauTrack, estimate_fps, figure, read_tau_track, resample_uniform,
-                     check_increasing, save_figure, write_csv, write_tau_track)
+from data.io import (CsvTable, InputError, TauTrack, as_list, check_increasing, estimate_fps, figure, read_tau_track,
+                     resample_uniform, save_figure, write_csv, write_tau_track)
 from motion.signal import parabolic_peak
 
 LANDMARK_NAMES: tuple[str, ...] = ("onset", "dip", "peak", "undershoot", "return")
@@ -687,31 +692,40 @@ def write_template(path: str | Path, template: SwallowTemplate) -> None:
 
 
 def read_template(path: str | Path) -> SwallowTemplate:
-    """A template written by :func:`write_template`: CSV ``time,tau[,std]`` (``std`` optional, else 0)."""
+    """A template written by :func:`write_template`: CSV ``time,tau,std``, time 0 at the onset.
+
+    Anything else (a tau track has ``time,tau`` too) is an InputError saying so: the ``std`` column is
+    required, and time must start at or before the onset, 0 (the rest padding is negative time), and end after it.
+    """
     path = Path(path)
+    what = "a swallow template written by python -m motion.swallow (CSV time,tau,std; time 0 = onset)"
     if path.suffix.lower() != ".csv":
-        raise InputError(f"{path}: a swallow template is a CSV with columns time,tau,std, got '{path.suffix}'")
+        raise InputError(f"{path}: not {what}: got '{path.suffix}'")
     table = CsvTable(path)
+    if not table.has("std"):
+        raise InputError(f"{path}: not {what}: no column 'std' (columns: {', '.join(table.header)})")
     if len(table) < 3:
         raise InputError(f"{path}: {len(table)} rows, a swallow template needs at least 3")
-    time, tau = table.numeric("time"), table.numeric("tau")
+    time, tau, std = table.numeric("time"), table.numeric("tau"), table.numeric("std")
     check_increasing(time, table, "time")
-    std = table.numeric("std") if table.has("std") else np.zeros(len(table))
+    if not time[0] <= 0.0 < time[-1]:
+        raise InputError(f"{path}: not {what}: column 'time' runs {time[0]:g} to {time[-1]:g} s, expected it to "
+                         f"start at or before 0 (the onset) and end after it")
     if (std < 0).any():
         i = int(np.argmax(std < 0))
         raise InputError(f"{path}: column 'std', line {table.lines[i]}: negative ({std[i]:g}), expected >= 0")
     return SwallowTemplate(time, tau, std, estimate_fps(time), np.array([0.0]), ("onset",))
 
 
-def read_tracks(paths: Sequence[str | Path], npy_fps: float | None = None) -> list[TauTrack]:
-    """Tau tracks from CSV or .npy files (``npy_fps`` is the frame rate of the .npy ones)."""
-    tracks = []
-    for p in paths:
-        p = Path(p)
-        if p.suffix.lower() == ".npy" and npy_fps is None and p.is_file():
-            raise InputError(f"{p}: a .npy tau track carries no frame rate; give npy_fps=...")
-        tracks.append(read_tau_track(p, fps=npy_fps if p.suffix.lower() == ".npy" else None))
-    return tracks
+def read_tracks(paths: Sequence[str | Path], fps: float | None = None,
+                min_confidence: float | None = None) -> list[TauTrack]:
+    """Tau tracks from CSV or .npy files (``data.io.read_tau_track``).
+
+    ``fps``: the frame rate of files that carry none (.npy, a CSV with ``frame`` but no ``time``/``fps``);
+    ``min_confidence``: tracker rows below it are dropped (files without a ``confidence`` column are read
+    whole).  Errors name the config keys of ``configs/swallow.yaml``.
+    """
+    return [read_tau_track(p, fps=fps, min_confidence=min_confidence, fps_key="fps") for p in paths]
 
 
 def plot_template(path: str | Path, build: TemplateBuild) -> None:
@@ -762,13 +776,14 @@ def config_from(cfg: DictConfig) -> SwallowConfig:
 
 def run_template(cfg: DictConfig) -> TemplateBuild:
     """``mode=template``: read ``inputs``, build the template, write ``out`` (and ``plot``), print the report."""
-    if not cfg.inputs:
+    inputs = as_list(cfg.inputs)
+    if not inputs:
         raise InputError("inputs=[a.csv,b.csv,...] is required (tau tracks: CSV or .npy)")
     if not cfg.out:
         raise InputError("out=template.csv is required")
     started = _time.perf_counter()
     config = config_from(cfg)
-    tracks = read_tracks(list(cfg.inputs), cfg.npy_fps)
+    tracks = read_tracks(inputs, cfg.fps, cfg.min_confidence)
     build = build_template(tracks, config)
     write_template(cfg.out, build.template)
     if cfg.plot:
@@ -783,14 +798,18 @@ def run_play(cfg: DictConfig) -> TauTrack:
     for key, example in (("track", "in.csv"), ("template", "template.csv"), ("out", "out.csv")):
         if not cfg.get(key):
             raise InputError(f"mode=play needs {key}={example}")
-    if not cfg.at:
+    at = as_list(cfg.at)
+    if not at:
         raise InputError("mode=play needs at=[t1,t2,...] (onset times in seconds)")
+    try:
+        at = [float(a) for a in at]
+    except (TypeError, ValueError):
+        raise InputError(f"at={at}: expected onset times in seconds (a number or a list of numbers)") from None
     config = config_from(cfg)
-    (track,) = read_tracks([cfg.track], cfg.npy_fps)
+    (read,) = read_tracks([cfg.track], cfg.fps, cfg.min_confidence)
+    track = uniform_track(read)  # over dropped tracker frames: the output is a complete frame,time,tau track
     template = read_template(cfg.template)
-    at = [float(a) for a in cfg.at]
-    durations, amplitudes = (OmegaConf.to_object(v) if OmegaConf.is_config(v) else v
-                             for v in (cfg.duration_scale, cfg.amplitude_scale))
+    durations, amplitudes = as_list(cfg.duration_scale), as_list(cfg.amplitude_scale)
     try:
         out = insert_swallows(track.tau, track.time, template, at, durations, amplitudes, config)
     except ValueError as e:
@@ -799,8 +818,11 @@ def run_play(cfg: DictConfig) -> TauTrack:
     write_tau_track(cfg.out, result)
     if cfg.plot:
         plot_playback(cfg.plot, track, out, at)
+    resampled = "" if track is read else (f" ({len(read)} rows resampled to {len(track)} uniform frames at "
+                                          f"{track.fps:g} fps)")
     print(f"inserted {len(at)} swallow(s) (peak {template.peak_height:.4f} tau x amplitude {cfg.amplitude_scale}, "
-          f"duration x {cfg.duration_scale}) into {cfg.track} at {', '.join(f'{a:g}' for a in at)} s; wrote {cfg.out}")
+          f"duration x {cfg.duration_scale}) into {cfg.track}{resampled} at {', '.join(f'{a:g}' for a in at)} s; "
+          f"wrote {cfg.out}")
     return result
 
 

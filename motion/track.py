@@ -759,7 +759,10 @@ def run(cfg) -> dict:
         return rig_cache[0]
 
     frames = source.frames()
-    _, first_label, first = next(frames)
+    head = next(frames, None)
+    if head is None:
+        raise InputError(f"{cfg.input}: no frames; expected at least one normal map")
+    _, first_label, first = head
     kernel = build_kernel(cfg, first, first_label, rig_loader)
     h, w = first.shape[:2]
     if kernel.size[0] > w or kernel.size[1] > h:

@@ -2,10 +2,11 @@
 
 Data (``cfg.data.kind``):
 - ``synthetic`` (default): sequences of the anatomical prior (``data.cervical_prior``), one person
-  each; validation sequences come from another seed, so from new persons.
-- ``theta_seq``: real theta sequences (``data.path``: a ``.npy`` ``[T,8,3]`` or a folder of them, at
-  ``data.fps``); several files are split by file (``val_fraction`` of them, chosen with ``seed``), a
-  single file by time (its last ``val_fraction`` of frames).
+  each; validation sequences come from another seed (``val_seed`` != ``seed``), so from new persons.
+  Every key of ``data`` is a PriorConfig field or one of ``SYNTHETIC_KEYS`` (else InputError).
+- ``theta_seq``: real theta sequences (``data.path``: a ``.npy`` ``[T,8,3]`` or a folder of them; the
+  mapping is per frame, so no frame rate); several files are split by file (``val_fraction`` of them,
+  chosen with ``split_seed``), a single file by time (its last ``val_fraction`` of frames).
 Head orientations are the rig's forward kinematics of the poses (``cfg.rig``, built-in by default).
 Poses are handled in the joints' anatomical frames (``HeadNeckModel.to_anatomical``), where the limits
 and the prior are written; real sequences arrive in bone frames (the release's layout) and are converted.
@@ -16,13 +17,15 @@ Loss per batch of frames (``configs/task/head2neck.yaml``)::
 
 (``|R - R*|^2 / 2 = 2 (1 - cos angle)``, about angle^2 in radians^2; E_rot and E_sim from
 ``models.joint_limits``).  Evaluation: per-joint angular error (degrees) of the model after the exact
-correction, of the model's raw output, and of the two analytic baselines after the same correction
-(the ROM split does not reproduce the head by itself; the uniform split does, but puts ~10% of the
-joints outside their limits, which the correction clamps and redistributes), the head orientation
-error and the share of joints inside the limits.
+correction, of the model's raw output, and of the two analytic baselines after the same correction,
+the head orientation error and the share of joints inside the limits.  The ROM split does not
+reproduce the head by itself; the uniform split does, but on the default prior it puts ~15% of the
+joints (in half the frames; built-in and real rig alike) outside their limits, which the correction
+clamps and redistributes.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -40,9 +43,28 @@ from models.rotations import axis_angle_to_matrix, relative_angle
 __all__ = ["Task", "build_model"]
 
 
+# The synthetic data section's own keys (configs/data/synthetic.yaml, configs/data_task/head2neck_synthetic.yaml);
+# its other keys are the generator's, the fields of PriorConfig.
+SYNTHETIC_KEYS = ("kind", "seed", "val_seed", "train_sequences", "val_sequences")
+
+
 def prior_config(data: DictConfig) -> PriorConfig:
-    """The generator settings among ``cfg.data`` (the fields of PriorConfig)."""
-    return config_dataclass(PriorConfig, data, "data (configs/data_task/head2neck_synthetic.yaml)", mixed=True)
+    """The generator settings of the synthetic ``cfg.data``; InputError for an unknown key, fewer than one
+    training or validation sequence, or ``val_seed == seed`` (the validation persons would be the
+    training persons)."""
+    where = "data (configs/data_task/head2neck_synthetic.yaml)"
+    values = OmegaConf.to_container(data, resolve=True)
+    known = set(SYNTHETIC_KEYS) | {f.name for f in dataclasses.fields(PriorConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise InputError(f"{where}: unknown keys {unknown}; known: {sorted(known)}")
+    for key in ("train_sequences", "val_sequences"):
+        if not int(values[key]) >= 1:
+            raise InputError(f"{where}: {key} is {values[key]}, expected at least 1")
+    if values["val_seed"] == values["seed"]:
+        raise InputError(f"{where}: val_seed equals seed ({values['seed']}): the validation persons would be the "
+                         f"training persons; choose another val_seed")
+    return config_dataclass(PriorConfig, {k: v for k, v in values.items() if k not in SYNTHETIC_KEYS}, where)
 
 
 def split_sequences(sequences: list[np.ndarray], val_fraction: float, seed: int, path: str
@@ -86,7 +108,7 @@ class Task:
                 [val.theta.reshape(-1, *val.theta.shape[2:])], description
         if data.kind == "theta_seq":
             sequences = [self.rig.to_anatomical(torch.as_tensor(s.theta)).numpy()  # release layout: bone frames
-                         for s in load_theta_sequences(data.path, float(data.fps), self.rig.num_joints)]
+                         for s in load_theta_sequences(data.path, self.rig.num_joints)]
             return split_sequences(sequences, float(data.val_fraction), int(data.split_seed), str(data.path))
         raise ValueError(f"task head2neck: unknown data kind '{data.kind}', expected synthetic or theta_seq")
 

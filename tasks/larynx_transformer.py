@@ -50,6 +50,20 @@ def load_sequences(data: DictConfig) -> tuple[list[LarynxSequence], list[LarynxS
     raise ValueError(f"larynx_transformer: data.kind '{data.kind}' not supported (synthetic or pairs)")
 
 
+def usable_sequences(train: list[LarynxSequence], crop: int) -> list[LarynxSequence]:
+    """The training sequences of at least ``crop`` frames; the shorter ones are reported (printed) and
+    dropped, and InputError if none is left."""
+    usable = [s for s in train if len(s) >= crop]
+    short = [s for s in train if len(s) < crop]
+    if not usable:
+        raise InputError(f"no training sequence has task.crop={crop} frames (longest: "
+                         f"{max(len(s) for s in train)}); lower task.crop")
+    if short:
+        print(f"larynx_transformer: {len(short)} of {len(train)} training sequences are shorter than task.crop="
+              f"{crop} frames and are not used: " + ", ".join(f"{s.name} ({len(s)} frames)" for s in short))
+    return usable
+
+
 # --------------------------------------------------------------------------- baselines
 
 
@@ -119,16 +133,13 @@ class Task:
         self.cfg = cfg
         self.settings = cfg.task
         self.fps = float(cfg.data.fps)
-        self.train, self.val = load_sequences(cfg.data)
-        self.subjects = sorted({s.subject for s in self.train if s.subject is not None})
         crop = int(self.settings.crop)
         if crop <= cfg.model.window:
             raise ValueError(f"task.crop ({crop}) must exceed model.window ({cfg.model.window}) so training "
                              f"sees full attention windows")
-        usable = [s for s in self.train if len(s) >= crop]
-        if not usable:
-            raise InputError(f"no training sequence has task.crop={crop} frames (longest: "
-                             f"{max(len(s) for s in self.train)}); lower task.crop")
+        train, self.val = load_sequences(cfg.data)
+        self.train = usable_sequences(train, crop)  # the model, its normalisation and the baselines see these
+        self.subjects = sorted({s.subject for s in self.train if s.subject is not None})
         all_tau = np.concatenate([s.tau for s in self.train]).astype(np.float64)
         self.tau_mean = float(all_tau.mean())
         self._model_config = {
@@ -138,13 +149,13 @@ class Task:
         self.model = build_model(self._model_config)
 
         # Training crops are gathered from one concatenated array.
-        self.psi = torch.from_numpy(np.concatenate([s.psi for s in usable]))
-        self.tau = torch.from_numpy(np.concatenate([s.tau for s in usable]))
-        lengths = torch.tensor([len(s) for s in usable])
+        self.psi = torch.from_numpy(np.concatenate([s.psi for s in self.train]))
+        self.tau = torch.from_numpy(np.concatenate([s.tau for s in self.train]))
+        lengths = torch.tensor([len(s) for s in self.train])
         self.starts = torch.cat([torch.zeros(1, dtype=torch.long), lengths.cumsum(0)[:-1]])
         self.crop_counts = lengths - crop + 1  # valid crop positions per sequence
-        self.seq_subject = torch.tensor([self.model.subject_index(s.subject) for s in usable])
-        self.seq_eta = torch.tensor([1.0 if s.eta is None else s.eta for s in usable], dtype=torch.float32)
+        self.seq_subject = torch.tensor([self.model.subject_index(s.subject) for s in self.train])
+        self.seq_eta = torch.tensor([1.0 if s.eta is None else s.eta for s in self.train], dtype=torch.float32)
         self._baselines: dict[str, float] | None = None
 
     def model_config(self) -> dict:

@@ -61,7 +61,7 @@ def broken_copy(release, tmp_path, edit):
     (lambda m, i: (m / "ts_larynx.npy").unlink(), r"ts_larynx\.npy: missing"),
     (lambda m, i: (i / "jawOpen.obj").unlink(), r"jawOpen\.obj: missing \(ICT-FaceKit expression 'jawOpen'\)"),
     (lambda m, i: (m / "000_generic_neutral_mesh_newuv.obj").write_text("v 0 0 0\nf 1 2 3\n"),
-     r"000_generic_neutral_mesh_newuv\.obj: a face references vertex 3, but the file has 1"),
+     r"000_generic_neutral_mesh_newuv\.obj: 'f' record 1 references vertex 2, but the file has 1"),
 ])
 def test_bad_asset_folders_name_the_file(release, tmp_path, edit, message):
     broken = broken_copy(release, tmp_path, edit)
@@ -77,6 +77,16 @@ def test_bad_rig_files_are_explained(tmp_path):
         HeadNeckModel.load(tmp_path / "junk.npz")
     with pytest.raises(InputError, match="is a folder; convert the release first"):
         HeadNeckModel.load(tmp_path)
+
+
+@pytest.mark.parametrize("keep", [0.5, 0.98])
+def test_truncated_rig_file_is_named(builtin_rig, tmp_path, keep):
+    """A copy cut short (an interrupted download): the zip directory or an archive member is missing."""
+    builtin_rig.rig.save(tmp_path / "whole.npz")
+    data = (tmp_path / "whole.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[:int(len(data) * keep)])
+    with pytest.raises(InputError, match=r"cut\.npz: not a rig file, or a damaged one"):
+        RigData.load(tmp_path / "cut.npz")
 
 
 def test_obj_round_trip(builtin_rig, tmp_path):

@@ -1,19 +1,21 @@
 """Anatomical prior of cervical motion (data/cervical_prior.py): statistics, limits, smoothness, loader."""
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
+import yaml
 
+from conftest import AXIAL_ONE_SIDE, SAGITTAL_TOTAL
 from data.cervical_prior import (C1C2, MOTION_KINDS, OC1, PriorConfig, head_rotations, load_theta_sequences,
                                  sample_persons, sample_sequences, segmental_euler)
 from data.io import InputError, save_npy
 from models.joint_limits import RANGES_DEG, within_limits
 
-# Published one-side ranges (White & Panjabi 1990, as in models/joint_limits.py), root to head:
-# C7-T1, C6-C7, C5-C6, C4-C5, C3-C4, C2-C3, C1-C2, O-C1.
-AXIAL_ONE_SIDE = np.array([2, 6, 7, 7, 7, 3, 40, 5], float)
-SAGITTAL_TOTAL = np.array([9, 17, 20, 20, 15, 10, 22.4, 24.5])
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -104,32 +106,58 @@ def test_kinds_seeds_and_head_orientation(sequences, builtin_rig):
     assert torch.allclose(head[1], direct, atol=1e-6)
 
 
+def test_yaml_mirrors_prior_config():
+    """configs/data_task/head2neck_synthetic.yaml: the generator's defaults, beside the task's own keys."""
+    with open(REPO / "configs" / "data_task" / "head2neck_synthetic.yaml") as f:
+        section = yaml.safe_load(f)
+    generator = {k: v for k, v in section.items() if k not in ("train_sequences", "val_sequences", "seed", "val_seed")}
+    defaults = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(PriorConfig()).items()}
+    assert generator == defaults
+
+
+@pytest.mark.parametrize("field, value", [
+    ("fps", 0.0), ("seconds", -1.0), ("range_scale_median", 0.0), ("range_scale_sigma", -0.1),
+    ("recruitment_sigma", float("nan")), ("coupling_sigma", -1.0), ("range_scale_min", 0.0),
+    ("range_scale_min", 1.5), ("kind_weights", (0.2, 0.2, 0.6)), ("kind_weights", (0.5, -0.1, 0.3, 0.3)),
+    ("kind_weights", (0.0, 0.0, 0.0, 0.0)),
+])
+def test_prior_config_rejects_values_out_of_range(field, value):
+    with pytest.raises(ValueError, match=field):
+        PriorConfig(**{field: value})
+
+
+def test_prior_config_needs_two_frames_per_sequence():
+    with pytest.raises(ValueError, match=r"seconds \* fps = 1 frames per sequence, expected at least 2"):
+        PriorConfig(fps=10.0, seconds=0.1)
+    assert sample_sequences(2, seed=0, config=PriorConfig(fps=10.0, seconds=0.2)).theta.shape == (2, 2, 8, 3)
+
+
 def test_theta_sequence_loader(tmp_path):
     good = np.zeros((5, 8, 3), np.float32)
     save_npy(tmp_path / "seq" / "b.npy", good + 0.1)
     save_npy(tmp_path / "seq" / "a.npy", good)
-    loaded = load_theta_sequences(tmp_path / "seq", fps=25.0)
-    assert [s.source.rsplit("/", 1)[-1] for s in loaded] == ["a.npy", "b.npy"] and loaded[1].fps == 25.0
-    assert loaded[1].theta.shape == (5, 8, 3)
+    loaded = load_theta_sequences(tmp_path / "seq")
+    assert [s.source.rsplit("/", 1)[-1] for s in loaded] == ["a.npy", "b.npy"]
+    assert loaded[1].theta.shape == (5, 8, 3) and np.allclose(loaded[1].theta, 0.1)
 
     save_npy(tmp_path / "wrong.npy", np.zeros((5, 7, 3)))
     with pytest.raises(InputError, match=r"wrong\.npy: array of shape \(5, 7, 3\), expected cervical poses \[T,8,3\]"):
-        load_theta_sequences(tmp_path / "wrong.npy", fps=30.0)
+        load_theta_sequences(tmp_path / "wrong.npy")
     degrees = good.copy()
     degrees[2, 4] = [30.0, 0.0, 0.0]
     save_npy(tmp_path / "deg.npy", degrees)
     with pytest.raises(InputError, match=r"deg\.npy: frame 2, joint 4: rotation of 30 rad.*degrees\?"):
-        load_theta_sequences(tmp_path / "deg.npy", fps=30.0)
+        load_theta_sequences(tmp_path / "deg.npy")
     bad = good.copy()
     bad[3, 0, 1] = np.nan
     save_npy(tmp_path / "nan.npy", bad)
     with pytest.raises(InputError, match=r"nan\.npy: non-finite value at index \(3, 0, 1\)"):
-        load_theta_sequences(tmp_path / "nan.npy", fps=30.0)
+        load_theta_sequences(tmp_path / "nan.npy")
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="empty: folder holds no .npy files"):
-        load_theta_sequences(tmp_path / "empty", fps=30.0)
+        load_theta_sequences(tmp_path / "empty")
     (tmp_path / "poses.csv").write_text("0,0,0\n")
     with pytest.raises(InputError, match=r"poses\.csv: unsupported format '\.csv'"):
-        load_theta_sequences(tmp_path / "poses.csv", fps=30.0)
+        load_theta_sequences(tmp_path / "poses.csv")
     with pytest.raises(InputError, match="missing.npy: not found"):
-        load_theta_sequences(tmp_path / "missing.npy", fps=30.0)
+        load_theta_sequences(tmp_path / "missing.npy")

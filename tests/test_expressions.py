@@ -87,6 +87,14 @@ def test_arkit_csv_with_prefix_and_seconds(tmp_path):
     assert len(track.missing) == 55 - 4
 
 
+def test_two_column_csv_keeps_its_zero_rows(tmp_path):
+    """Only under Live Link Face's wide header is "<time>,0" a lost frame; a one-shape take keeps its zeros."""
+    rows = [f"{i / 30:.6f},{0.0 if i % 3 else 0.4}" for i in range(9)]
+    track = read_expressions(write(tmp_path / "jaw.csv", ["time", "jawOpen"], rows))
+    assert len(track) == 9
+    np.testing.assert_allclose(track.psi[:, K["jawOpen"]], [0.4 if i % 3 == 0 else 0.0 for i in range(9)], atol=1e-7)
+
+
 def test_hack_named_csv_with_frames_needs_fps(tmp_path):
     path = write(tmp_path / "hack.csv", ["frame", "jawOpen", "mouthPress_L"],
                  [f"{i},{0.01 * i:.2f},0.3" for i in range(10, 16)])
@@ -142,6 +150,71 @@ def test_timecode_and_time_errors(tmp_path):
         read_expressions(path)
     with pytest.raises(InputError, match="missing.csv: file not found"):
         read_expressions(tmp_path / "missing.csv")
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_headerless_csv_rejects_non_finite_naming_line_and_column(tmp_path, value):
+    psi = np.full((4, 55), 0.2)
+    lines = [",".join(f"{v:g}" for v in row) for row in psi]
+    cells = lines[2].split(",")
+    cells[K["jawOpen"]] = value
+    lines[2] = ",".join(cells)  # line 3 of a header-less file
+    (tmp_path / "plain.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=rf"plain\.csv: column 'jawOpen', line 3: value is {value}, expected finite"):
+        read_expressions(tmp_path / "plain.csv", fps=30)
+
+
+def test_headerless_csv_with_byte_order_mark_and_ragged_line(tmp_path):
+    psi = np.random.default_rng(1).uniform(0, 1, (5, 55)).round(4)
+    text = "\n".join(",".join(f"{v:.4f}" for v in row) for row in psi) + "\n"
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + text.encode())  # Excel's "CSV UTF-8"
+    track = read_expressions(tmp_path / "bom.csv", fps=30)
+    np.testing.assert_allclose(track.psi, psi, atol=1e-6)
+    lines = text.splitlines()
+    lines[3] = lines[3].rsplit(",", 1)[0]
+    (tmp_path / "ragged.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"ragged\.csv: line 4 has 54 cells, expected 55"):
+        read_expressions(tmp_path / "ragged.csv", fps=30)
+    lines = text.splitlines()
+    lines[1] = ",".join(["45"] + lines[1].split(",")[1:])
+    (tmp_path / "degrees.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=rf"degrees\.csv: column '{EXPRESSION_NAMES[0]}', line 2: weight 45 outside"):
+        read_expressions(tmp_path / "degrees.csv", fps=30)
+
+
+def test_missing_rate_names_the_callers_key(tmp_path):
+    psi = np.full((3, 55), 0.1)
+    np.savetxt(tmp_path / "plain.csv", psi, delimiter=",")
+    np.save(tmp_path / "psi.npy", psi)
+    write(tmp_path / "frames.csv", ["frame", "jawOpen"], ["0,0.1", "1,0.2"])
+    for name in ("plain.csv", "psi.npy", "frames.csv"):
+        with pytest.raises(InputError, match=rf"{name}: .*give expressions_fps=\.\.\."):
+            read_expressions(tmp_path / name, fps_key="expressions_fps")
+        with pytest.raises(InputError, match=r"give fps=\.\.\."):  # the default key
+            read_expressions(tmp_path / name)
+
+
+def short_take(path, frames):
+    """A Live Link Face take whose timecode frame numbers are ``frames`` (all in one second)."""
+    rows = []
+    for f in frames:
+        values = {name: 0.0 for name in ARKIT}
+        values["JawOpen"] = 0.01 * f
+        rows.append(",".join([f"09:30:12:{f:02d}.000", "61", *[f"{values[n]:.4f}" for n in ARKIT], *["0.0"] * 9]))
+    return write(path, LLF_HEADER, rows)
+
+
+def test_short_live_link_face_take_needs_timecode_fps(tmp_path):
+    path = short_take(tmp_path / "short.csv", range(0, 20))  # 20 frames: 0.8 s at 25 fps, 0.67 s at 30 fps
+    with pytest.raises(InputError, match=r"short\.csv: column 'Timecode': .*ambiguous.*give timecode_fps=\.\.\."):
+        read_expressions(path)
+    for rate in (25, 30):
+        track = read_expressions(path, timecode_fps=rate)
+        np.testing.assert_allclose(track.time, np.arange(20) / rate, atol=1e-9)
+        assert track.fps == pytest.approx(rate)
+    # Frame numbers reaching 23: a full second at 24 fps, read without timecode_fps.
+    full = read_expressions(short_take(tmp_path / "second.csv", range(0, 24)))
+    assert full.fps == pytest.approx(24.0) and full.time[-1] == pytest.approx(23 / 24)
 
 
 def test_resampled_is_linear_on_a_uniform_grid(tmp_path):

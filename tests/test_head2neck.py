@@ -17,6 +17,7 @@ from hydra import compose, initialize_config_dir
 from scipy.spatial.transform import Rotation
 
 import train
+from conftest import AXIAL_ONE_SIDE, QUARTER_TURN_X, QUARTER_TURN_Y
 from data.cervical_prior import head_rotations, sample_sequences
 from data.io import InputError, save_npy, write_csv
 from models.checkpoint import load_model
@@ -29,8 +30,7 @@ from motion.head2neck import read_head_rotations, run
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = str(REPO / "configs")
-# One-side axial rotation per level (White & Panjabi 1990), root to head.
-AXIAL_ONE_SIDE = np.array([2, 6, 7, 7, 7, 3, 40, 5], float)
+C1C2, OC1 = 6, 7
 
 
 @pytest.fixture(scope="module")
@@ -109,6 +109,25 @@ def test_predict_theta_refuses_a_model_of_another_rig(builtin_rig, poses):
         predict_theta(model, builtin_rig, poses[1][:4])
 
 
+def synthetic_data(*overrides):
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        return compose("train", overrides=["task=head2neck", *overrides]).data
+
+
+def test_synthetic_data_section_is_checked():
+    from tasks.head2neck import prior_config
+
+    assert prior_config(synthetic_data("data.coupling_sigma=0.3")).coupling_sigma == 0.3
+    with pytest.raises(InputError, match=r"head2neck_synthetic\.yaml\): unknown keys \['coupling_sigmaa'\]"):
+        prior_config(synthetic_data("+data.coupling_sigmaa=0.3"))  # a typo is not dropped silently
+    with pytest.raises(InputError, match="val_seed equals seed .*validation persons would be the training persons"):
+        prior_config(synthetic_data("data.seed=4", "data.val_seed=4"))
+    with pytest.raises(InputError, match=r"head2neck_synthetic\.yaml\): range_scale_min must be in \(0, 1\]"):
+        prior_config(synthetic_data("data.range_scale_min=1.5"))
+    with pytest.raises(InputError, match="val_sequences is 0, expected at least 1"):
+        prior_config(synthetic_data("data.val_sequences=0"))
+
+
 # --------------------------------------------------------------------------- learning
 
 
@@ -132,23 +151,44 @@ def test_trained_model_generalises_to_fresh_sequences(tiny_run, builtin_rig, pos
     assert head_error_deg(predicted, head, builtin_rig).max() < 0.1 and within_limits(predicted).all()
 
 
-def test_theta_seq_data_trains_and_holds_out_whole_files(tmp_path, builtin_rig):
+def in_turned_bone_frames(theta: torch.Tensor) -> torch.Tensor:
+    """Anatomical theta [...,8,3] -> the bone frames of the conftest ``turned_rig``: a turned bone's axes are
+    its anatomical axes times the quarter turn Q, so its rotation vector is Q^T theta (theta @ Q as a row)."""
+    bone = theta.clone()
+    bone[..., OC1, :] = theta[..., OC1, :] @ torch.tensor(QUARTER_TURN_X, dtype=theta.dtype)
+    bone[..., C1C2, :] = theta[..., C1C2, :] @ torch.tensor(QUARTER_TURN_Y, dtype=theta.dtype)
+    return bone
+
+
+def in_turned_bone_frames_matrices(rotations: torch.Tensor) -> torch.Tensor:
+    """The same for rotation matrices [...,8,3,3]: Q^T R Q."""
+    bone = rotations.clone()
+    for joint, turn in ((OC1, QUARTER_TURN_X), (C1C2, QUARTER_TURN_Y)):
+        q = torch.tensor(turn, dtype=rotations.dtype)
+        bone[..., joint, :, :] = q.T @ rotations[..., joint, :, :] @ q
+    return bone
+
+
+def test_theta_seq_data_in_bone_frames_trains_and_holds_out_whole_files(tmp_path, turned_rig, turned_rig_file):
+    """Real sequences are in bone frames (the release's layout); on a rig whose bone frames are not anatomical
+    (conftest ``turned_rig``) the task converts them, and the trained model's theta is in bone frames again."""
     from tasks.head2neck import Task
 
-    sequences = sample_sequences(5, seed=7)
-    for i, theta in enumerate(sequences.theta):
-        save_npy(tmp_path / "seq" / f"take{i}.npy", theta)
+    sequences = sample_sequences(5, seed=7)                       # anatomical frames
+    anatomical = torch.tensor(sequences.theta)
+    for i, theta in enumerate(in_turned_bone_frames(anatomical)):
+        save_npy(tmp_path / "seq" / f"take{i}.npy", theta.numpy())
 
     def config(path, *extra):
         with initialize_config_dir(config_dir=CONFIGS, version_base=None):
             return compose("train", overrides=[
-                "task=head2neck", "data=theta_seq", f"data.path={path}", "model.hidden=[64]",
-                "trainer.max_steps=150", "trainer.eval_every=0", "trainer.progress=false", "trainer.threads=1",
-                *extra])
+                "task=head2neck", "data=theta_seq", f"data.path={path}", f"rig={turned_rig_file}",
+                "model.hidden=[64]", "trainer.max_steps=150", "trainer.eval_every=0", "trainer.progress=false",
+                "trainer.threads=1", *extra])
 
     one_file = Task(config(tmp_path / "seq" / "take0.npy"))
-    last = builtin_rig.to_anatomical(torch.tensor(sequences.theta[0, 96:]))  # the last 20% of frames
-    assert torch.allclose(one_file.val["rotations"], axis_angle_to_matrix(last))
+    assert torch.allclose(one_file.val["rotations"], axis_angle_to_matrix(anatomical[0, 96:]), atol=1e-6)  # last 20%
+    assert torch.allclose(one_file.val["head"], head_rotations(turned_rig, anatomical[0, 96:]), atol=1e-6)
     cfg = config(tmp_path / "seq")
     task = Task(cfg)
     assert len(task.val["head"]) == 120 and len(task.train["head"]) == 4 * 120  # 1 of 5 files held out
@@ -156,12 +196,27 @@ def test_theta_seq_data_trains_and_holds_out_whole_files(tmp_path, builtin_rig):
     train.fit(cfg, tmp_path / "run")
     model, _ = load_model(tmp_path / "run" / "checkpoints" / "last.pt", task="head2neck")
     head, truth = task.train["head"], task.train["rotations"]
+    bone = predict_theta(model, turned_rig, head)
+    assert float(torch.rad2deg(relative_angle(turned_rig.head_rotation(bone), head)).max()) < 0.1
+    model_error = torch.rad2deg(relative_angle(axis_angle_to_matrix(bone), in_turned_bone_frames_matrices(truth)))
+    rom = correct_to_head(split_head_rotation(head, model.rest, "rom"), head, turned_rig)  # anatomical
+    rom_error = torch.rad2deg(relative_angle(axis_angle_to_matrix(rom), truth))
+    assert model_error.mean() < 0.8 * rom_error.mean()  # it learnt the files' poses
 
-    def error(theta):
-        return torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), truth)).mean()
 
-    rom = correct_to_head(split_head_rotation(head, model.rest, "rom"), head, builtin_rig)
-    assert error(builtin_rig.to_anatomical(predict_theta(model, builtin_rig, head))) < 0.8 * error(rom)  # it learnt the files' poses
+def test_head_orientation_round_trip_on_turned_bone_frames(builtin_rig, turned_rig, poses):
+    """Head orientation of anatomical poses, and predict_theta back to bone frames, on the conftest
+    ``turned_rig`` (the built-in rig with oc1 and c1c2 turned: other bone frames, the same anatomy)."""
+    theta, head = poses[0][:600], poses[1][:600]  # anatomical; head from the built-in rig (bone = anatomical)
+    assert torch.allclose(head_rotations(turned_rig, theta), head, atol=1e-5)
+    assert float(head_error_deg(theta, head, turned_rig).max()) < 1e-3
+    assert float(head_error_deg(in_turned_bone_frames(theta), head, turned_rig).max()) > 1.0  # bone != anatomical
+    # an untrained model is the ROM split plus the exact correction: the same anatomical pose on both rigs
+    model = build_model({"rest_rotations": turned_rig.anatomical_rest_rotations.tolist(), "hidden": [8],
+                         "activation": "silu", "residual_scale": 0.1})
+    bone = predict_theta(model, turned_rig, head)
+    assert float(torch.rad2deg(relative_angle(turned_rig.head_rotation(bone), head)).max()) < 0.01
+    assert torch.allclose(bone, in_turned_bone_frames(predict_theta(model, builtin_rig, head)), atol=1e-5)
 
 
 # --------------------------------------------------------------------------- CLI
@@ -226,9 +281,10 @@ def test_cli_errors_name_the_file_and_frame(tmp_path):
     save_npy(tmp_path / "degrees.npy", np.full((4, 3), 30.0))
     with pytest.raises(InputError, match=r"degrees\.npy: angles up to 30 rad after units=rad.*wrong units"):
         read_head_rotations(tmp_path / "degrees.npy")
-    write_csv(tmp_path / "nohead.csv", {"Timecode": ["10:00:00:01.000", "10:00:00:02.000"],
-                                        "JawOpen": [0.1, 0.2], "HeadYaw": [0.0, 0.0], "HeadPitch": [0.0, 0.0],
-                                        "HeadRoll": [0.0, 0.0]})
+    frames = 40  # over a second at 30 fps, so the timecode's rate is unambiguous
+    write_csv(tmp_path / "nohead.csv", {"Timecode": [f"10:00:{i // 30:02d}:{i % 30:02d}.000" for i in range(frames)],
+                                        "JawOpen": np.full(frames, 0.1), "HeadYaw": np.zeros(frames),
+                                        "HeadPitch": np.zeros(frames), "HeadRoll": np.zeros(frames)})
     with pytest.raises(InputError, match=r"nohead\.csv: no head rotation recorded"):
         read_head_rotations(tmp_path / "nohead.csv")
 

@@ -59,17 +59,56 @@ def test_capture_to_meshes(tmp_path, builtin_rig):
     assert np.abs(vertices - expected.numpy()).max() < 1e-3
 
 
-def test_nothing_to_write_is_an_error(tmp_path):
+def compose_infer(overrides: list[str]):
     from hydra import compose, initialize_config_dir
 
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base=None):
+        return compose("infer", overrides=overrides)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ([], "nothing to write"),
+    (["out=OUT", "swallow_at=[0.5]"], r"swallows need both swallow_template=.* and swallow_at=.*got swallow_template=None"),
+    (["out=OUT", "swallow_template=TEMPLATE"], r"swallows need both .*swallow_at=\[\]"),
+    (["out=OUT", "swallow_template=TEMPLATE", "swallow_at=20.0"],              # one onset without brackets
+     r"swallow_at=\[20\.0\] in .*take\.csv: .*a swallow at 20 s"),
+    (["meshes=OUT", "mesh_format=stl"], r"mesh_format=stl: expected one of ply, obj"),
+    (["out=OUT/tau.csv", "meshes=USED"], r"meshes=.*used: already holds 1 output file\(s\) of an earlier run"),
+    (["out=OUT", "swallow_template=TEMPLATE", "swallow_at=[20.0]"],
+     r"swallow_at=\[20\.0\] in .*take\.csv: .*a swallow at 20 s spans .* outside the track \[0\.00, 2\.97\] s"),
+    (["out=OUT", "swallow_template=TEMPLATE", "swallow_at=[1.0]", "swallow_playback.blend=mix"],
+     r"swallow_playback \(configs/infer\.yaml\): SwallowConfig\.blend must be 'replace' or 'add', got 'mix'"),
+])
+def test_bad_requests_are_named_and_nothing_is_written(tmp_path, overrides, message):
     from data.io import InputError
     from infer import run
 
-    write_csv(tmp_path / "take.csv", {"time": np.arange(3) / 30, "jawOpen": np.zeros(3)})
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base=None):
-        cfg = compose("infer", overrides=[f"expressions={tmp_path / 'take.csv'}"])
-    with pytest.raises(InputError, match="nothing to write"):
-        run(cfg)
+    write_csv(tmp_path / "take.csv", {"time": np.arange(90) / 30, "jawOpen": np.zeros(90)})  # a neutral face
+    template_time = np.arange(0, 1.2, 1 / 60)
+    write_template(tmp_path / "template.csv", SwallowTemplate(template_time, swallow_profile(template_time),
+                                                              np.zeros_like(template_time), 60.0))
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "frame_00000.ply").write_text("")
+    paths = {"OUT": str(tmp_path / "out"), "TEMPLATE": str(tmp_path / "template.csv"), "USED": str(tmp_path / "used")}
+    overrides = [o.replace("OUT", paths["OUT"]).replace("TEMPLATE", paths["TEMPLATE"]).replace("USED", paths["USED"])
+                 for o in overrides]
+    with pytest.raises(InputError, match=message):
+        run(compose_infer([f"expressions={tmp_path / 'take.csv'}", *overrides]))
+    assert not (tmp_path / "out").exists()
+
+
+def test_playback_settings_mirror_the_swallow_config():
+    """configs/infer.yaml's swallow_playback holds SwallowConfig's playback fields at their defaults."""
+    import dataclasses
+
+    import yaml
+
+    from motion.swallow import SwallowConfig
+
+    with open(REPO / "configs" / "infer.yaml") as f:
+        playback = yaml.safe_load(f)["swallow_playback"]
+    defaults = dataclasses.asdict(SwallowConfig())
+    assert playback == {k: defaults[k] for k in ("fade_seconds", "blend", "rest_window_seconds")}
 
 
 def test_missing_required_keys_are_named_with_exit_status_2():

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from data.io import InputError, atomic_path, read_tau_track, write_csv
+from data.io import CsvTable, InputError, as_list, atomic_path, read_tau_track, save_npy, write_csv
 
 
 def test_tracker_rows_below_confidence_are_dropped(tmp_path):
@@ -29,6 +29,65 @@ def test_bad_tau_tracks_name_the_file_and_line(tmp_path, rows, message):
     (tmp_path / "bad.csv").write_text(rows)
     with pytest.raises(InputError, match=f"bad.csv: {message}"):
         read_tau_track(tmp_path / "bad.csv")
+
+
+def test_min_confidence_ignored_without_a_confidence_column(tmp_path):
+    write_csv(tmp_path / "plain.csv", {"time": np.arange(4) / 10.0, "tau": [0.0, 0.01, 0.02, 0.03]})
+    track = read_tau_track(tmp_path / "plain.csv", min_confidence=0.3)
+    np.testing.assert_allclose(track.tau, [0.0, 0.01, 0.02, 0.03])
+    assert track.fps == 10.0
+
+
+def test_tracker_csv_without_calibration_says_so(tmp_path):
+    """motion.track without px_per_tau writes tau_px and a NaN tau column."""
+    write_csv(tmp_path / "uncal.csv", {"frame": np.arange(5), "time": np.arange(5) / 30.0,
+                                       "tau_px": [0.0, 1.0, 2.0, 1.5, 0.5], "tau": np.full(5, np.nan),
+                                       "confidence": np.full(5, 0.9)})
+    for min_confidence in (None, 0.3):
+        with pytest.raises(InputError, match=r"uncal\.csv: .*no calibration.*px_per_tau=.*cm_per_px=.*kernel=rig"):
+            read_tau_track(tmp_path / "uncal.csv", min_confidence=min_confidence)
+
+
+def test_rate_from_the_caller_only_where_the_file_has_none(tmp_path):
+    (tmp_path / "frames.csv").write_text("frame,tau\n0,0\n1,0.1\n2,0.2\n")
+    with pytest.raises(InputError, match=r"frames\.csv: column 'frame' without a 'time' or 'fps' column; give track_fps="):
+        read_tau_track(tmp_path / "frames.csv", fps_key="track_fps")
+    np.testing.assert_allclose(read_tau_track(tmp_path / "frames.csv", fps=20).time, [0.0, 0.05, 0.1])
+    save_npy(tmp_path / "t.npy", np.zeros(4))
+    with pytest.raises(InputError, match=r"t\.npy: a \.npy tau track carries no frame rate; give my_rate="):
+        read_tau_track(tmp_path / "t.npy", fps_key="my_rate")
+    # A file's own rate wins over the caller's fallback: its fps column, or its time stamps.
+    (tmp_path / "own.csv").write_text("frame,tau,fps\n0,0,25\n1,0.1,25\n")
+    own = read_tau_track(tmp_path / "own.csv", fps=60)
+    assert own.fps == 25.0 and own.time[1] == pytest.approx(0.04)
+    (tmp_path / "timed.csv").write_text("time,tau\n0,0\n0.1,0.1\n0.2,0\n")
+    assert read_tau_track(tmp_path / "timed.csv", fps=60).fps == 10.0
+    (tmp_path / "one.csv").write_text("time,tau\n0,0\n")
+    with pytest.raises(InputError, match=r"one\.csv: one row only; give fps="):
+        read_tau_track(tmp_path / "one.csv")
+    assert read_tau_track(tmp_path / "one.csv", fps=30).fps == 30.0
+
+
+def test_headerless_table_names_line_and_column(tmp_path):
+    (tmp_path / "plain.csv").write_bytes("\ufeff1,2\n3,inf\n".encode("utf-8"))  # with a UTF-8 byte-order mark
+    with pytest.raises(InputError, match=r"plain\.csv: column 'b', line 2: value is inf, expected finite"):
+        CsvTable(tmp_path / "plain.csv", columns=["a", "b"]).numeric("b")
+    table = CsvTable(tmp_path / "plain.csv", columns=["a", "b"])
+    np.testing.assert_array_equal(table.numeric("a"), [1.0, 3.0])  # the first row is data, the mark is gone
+    (tmp_path / "ragged.csv").write_text("1,2\n3\n")
+    with pytest.raises(InputError, match=r"ragged\.csv: line 2 has 1 cells, expected 2"):
+        CsvTable(tmp_path / "ragged.csv", columns=["a", "b"])
+
+
+def test_as_list_takes_one_value_or_a_list():
+    from omegaconf import OmegaConf
+
+    assert as_list("a.csv") == ["a.csv"]  # a string is one item, not its characters
+    assert as_list(2.0) == [2.0] and as_list(0) == [0]
+    assert as_list(None) == [] and as_list([]) == []
+    assert as_list((1, 2)) == [1, 2]
+    listed = as_list(OmegaConf.create({"at": [1.5, 2.5]}).at)
+    assert listed == [1.5, 2.5] and isinstance(listed, list)
 
 
 def test_atomic_path_leaves_the_old_file_on_failure(tmp_path):

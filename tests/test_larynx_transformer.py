@@ -36,12 +36,13 @@ def one_thread():
 
 TINY_MODEL = {"d_model": 16, "n_heads": 2, "n_layers": 2, "d_ff": 32, "window": 16, "cross_window": 1, "period": 5,
               "expression_layers": 1, "expression_kernel": 3, "dropout": 0.0, "use_eta": False}
+DATA_FIELDS = {"fps": 30.0, "subjects": [], "tau_mean": 0.01, "tau_scale": 0.02}  # what the task takes from the data
 
 
 def random_model(**overrides):
     """A tiny model with non-trivial random weights (the default init keeps the output near tau_mean)."""
     torch.manual_seed(0)
-    model = build_model({**TINY_MODEL, "tau_mean": 0.01, "tau_scale": 0.02, **overrides}).eval()
+    model = build_model({**TINY_MODEL, **DATA_FIELDS, **overrides}).eval()
     with torch.no_grad():
         for p in model.parameters():
             p.add_(0.2 * torch.randn_like(p))
@@ -133,6 +134,14 @@ def test_per_frame_cost_is_flat(long_stream):
     near_seconds, far_seconds = long_stream[3], long_stream[4]
     ratio = np.median(far_seconds) / np.median(near_seconds)  # frames 9,700-10,000 vs 200-500
     assert ratio < 1.5, (np.median(near_seconds), np.median(far_seconds))
+
+
+def test_model_config_needs_the_data_fields():
+    """fps, subjects and the tau normalisation come from the training data: no silent defaults."""
+    with pytest.raises(ValueError, match=r"missing \['fps', 'tau_scale'\], unknown \[\]"):
+        build_model({**TINY_MODEL, "subjects": [], "tau_mean": 0.0})
+    with pytest.raises(ValueError, match=r"missing \[\], unknown \['tau_std'\]"):
+        build_model({**TINY_MODEL, **DATA_FIELDS, "tau_std": 0.02})
 
 
 def test_predict_tau_and_subjects():
@@ -265,7 +274,7 @@ SHORT_DATA = ["data.train_subjects=3", "data.sequences_per_subject=2", "data.sec
 
 def test_reproducible_and_exact_resume(tmp_path):
     def weights(run_dir):
-        return torch.load(run_dir / "checkpoints" / "last.pt", weights_only=False)["model"]
+        return torch.load(run_dir / "checkpoints" / "last.pt", weights_only=True)["model"]
 
     # 12 steps: scheduled sampling switches on at step 2 (10% of max_steps), so its passes are covered.
     once = tiny_config(["trainer.max_steps=12"], SHORT_DATA)
@@ -303,6 +312,36 @@ def test_pairs_folder_split_by_file(tmp_path):
     assert metrics["mean_rmse"] == pytest.approx(np.sqrt(np.mean((val_tau - train_mean) ** 2)), rel=1e-6)
     batch = task.batch(0, torch.Generator().manual_seed(0))
     assert batch["psi"].shape == (12, 64, 55) and batch["tau"].shape == (12, 64)
+
+
+def test_sequences_shorter_than_a_crop_are_reported_and_left_out(tmp_path, capsys):
+    """Their frames would feed the tau normalisation, the ridge baseline and the subject table but never a crop."""
+    from tasks.larynx_transformer import Task, load_sequences
+
+    folder = tmp_path / "pairs"
+    for i in range(6):
+        long = i < 3
+        sequence = make_sequence(i % 2 if long else 5, i, 240 if long else 40, 30.0, seed=1)
+        sequence.name = f"take{i}"
+        if not long:
+            sequence.tau = sequence.tau + 1.0  # far from the others: visible in tau_mean if it leaked in
+        save_pair(folder / f"take{i}.npz", sequence)
+    cfg = tiny_config(["data=pairs", f"data.path={folder}", "data.val_fraction=0.2", "task.crop=64",
+                       "model.window=16"], data=[])
+    everything, _ = load_sequences(cfg.data)
+    short = sorted(s.name for s in everything if len(s) < 64)
+    assert len(short) >= 2 and "s5" in {s.subject for s in everything}  # the split leaves short files in training
+    task = Task(cfg)
+    printed = capsys.readouterr().out
+    assert f"{len(short)} of {len(everything)} training sequences are shorter than task.crop=64" in printed
+    assert all(f"{name} (40 frames)" in printed for name in short)
+    assert sorted(s.name for s in task.train) == sorted(s.name for s in everything if len(s) >= 64)
+    assert task.model.subjects == ["s0", "s1"]  # not s5, seen in short files only
+    usable_tau = np.concatenate([s.tau for s in everything if len(s) >= 64]).astype(np.float64)
+    assert float(task.model.tau_mean) == pytest.approx(usable_tau.mean(), rel=1e-5)
+    assert float(task.model.tau_scale) == pytest.approx(usable_tau.std(), rel=1e-4)
+    with pytest.raises(InputError, match="no training sequence has task.crop=300 frames .longest: 240."):
+        Task(tiny_config(["data=pairs", f"data.path={folder}", "data.val_fraction=0.2", "task.crop=300"], data=[]))
 
 
 # --------------------------------------------------------------------------- inference CLI

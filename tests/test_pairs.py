@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from data.expressions import EXPRESSION_NAMES, read_expressions
-from data.io import InputError, read_tau_track, save_npz, split_by_file, write_csv
+from data.io import InputError, read_tau_track, save_npy, save_npz, split_by_file, write_csv
 from data.pairs import LarynxSequence, align_pair, load_pair, load_pairs, save_pair
 
 REPO = Path(__file__).resolve().parents[1]
@@ -79,6 +79,47 @@ def test_cli_reports_no_overlap(capture, tmp_path):
     assert "error:" in result.stderr and "track.csv covers 20.000-26.000 s" in result.stderr
     assert "take.csv covers 0.000-8.000 s" in result.stderr and "offset" in result.stderr
     assert not out.exists()
+
+
+def compose_pairs(overrides):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base=None):
+        return compose("pairs", overrides=[str(o) for o in overrides])
+
+
+def test_cli_asks_for_the_rates_by_their_keys(capture, tmp_path):
+    """In python -m data.pairs, fps is the output rate: a missing input rate is asked for by its own key."""
+    from data.pairs import run
+
+    track, take = capture
+    out = tmp_path / "pair.npz"
+    save_npy(tmp_path / "track.npy", true_tau(np.arange(100) / 25))
+    with pytest.raises(InputError, match=r"track\.npy: a \.npy tau track carries no frame rate; give track_fps="):
+        run(compose_pairs([f"track={tmp_path / 'track.npy'}", f"expressions={take}", f"out={out}", "fps=30"]))
+    np.savetxt(tmp_path / "plain.csv", np.full((50, 55), 0.2), delimiter=",")
+    with pytest.raises(InputError, match=r"plain\.csv: a header-less table carries no frame rate; give expressions_fps="):
+        run(compose_pairs([f"track={track}", f"expressions={tmp_path / 'plain.csv'}", f"out={out}", "fps=30"]))
+    assert not out.exists()
+    pair = run(compose_pairs([f"track={tmp_path / 'track.npy'}", "track_fps=25", f"expressions={tmp_path / 'plain.csv'}",
+                              "expressions_fps=10", f"out={out}", "fps=20"]))
+    assert pair.fps == 20 and len(pair) == 80  # overlap: the track's 100 frames at 25 fps, 0-3.96 s
+    np.testing.assert_allclose(pair.tau, true_tau(np.arange(len(pair)) / 20), atol=2e-4)
+
+
+def test_cli_passes_timecode_fps(capture, tmp_path):
+    """A Live Link Face take under one second: the timecode rate comes from timecode_fps."""
+    from data.pairs import run
+
+    header = ["Timecode", "BlendShapeCount", "JawOpen", "HeadYaw", "HeadPitch", "HeadRoll"]
+    rows = [f"10:00:00:{f:02d}.000,61,{true_jaw(f / 25):.6f},0,0,0" for f in range(20)]
+    (tmp_path / "short.csv").write_text(",".join(header) + "\n" + "\n".join(rows) + "\n")
+    args = [f"track={capture[0]}", f"expressions={tmp_path / 'short.csv'}", f"out={tmp_path / 'pair.npz'}"]
+    with pytest.raises(InputError, match=r"short\.csv: column 'Timecode': .*give timecode_fps="):
+        run(compose_pairs(args))
+    pair = run(compose_pairs(args + ["timecode_fps=25"]))
+    assert pair.fps == pytest.approx(25.0) and len(pair) == 20  # the take's rate and frames (0-0.76 s)
+    np.testing.assert_allclose(pair.psi[:, JAW], true_jaw(np.arange(20) / 25), atol=1e-5)
 
 
 def make_sequence(length=40, fps=30.0, subject="anna", seed=0):

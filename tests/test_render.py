@@ -14,7 +14,7 @@ import torch
 import yaml
 
 from data.io import InputError
-from data.normal_sequences import SequenceConfig, head_motion, make_sequence
+from data.normal_sequences import SequenceConfig, head_motion, make_sequence, write_sequence
 from data.render import (Camera, NeckRenderer, encode_normals, larynx_areas, larynx_point, neck_camera, outward_faces,
                          read_normal_image, render_normals, rest_larynx_point, stored_to_unit, write_normal_image)
 
@@ -208,3 +208,19 @@ def test_sequence_yaml_mirrors_config_dataclass():
         config = yaml.safe_load(f)
     cli_keys = {"defaults", "out", "format", "seed", "rig", "threads"}
     assert {k: v for k, v in config.items() if k not in cli_keys} == dataclasses.asdict(SequenceConfig())
+
+
+def test_sequence_folder_of_an_earlier_run_is_refused(tmp_path, builtin_rig):
+    """A second sequence written over a first would leave its extra frames beside the new truth.csv."""
+    sequence = make_sequence(builtin_rig, SequenceConfig(frames=3, size=64, cm_per_px=0.32), seed=0)
+    written = write_sequence(tmp_path / "seq", sequence, "png8")
+    assert [p.name for p in written] == ["frame_00000.png", "frame_00001.png", "frame_00002.png"]
+    with pytest.raises(InputError, match=r"out=.*seq: already holds 4 output file\(s\) of an earlier run "
+                                         r"\(frame_00000\.png, frame_00001\.png, frame_00002\.png, \.\.\.\)"):
+        write_sequence(tmp_path / "seq", sequence, "npy")
+    (tmp_path / "file").write_text("")
+    with pytest.raises(InputError, match=r"out=.*file: not a folder"):
+        write_sequence(tmp_path / "file", sequence, "npy")
+    with pytest.raises(InputError, match=r"format=jpg: expected png8, png16, exr, npy"):
+        write_sequence(tmp_path / "other", sequence, "jpg")
+    assert not (tmp_path / "other").exists()

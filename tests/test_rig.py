@@ -154,6 +154,41 @@ def test_pose_correctives_use_rotation_minus_identity_without_the_root(builtin_r
     assert torch.allclose(rest, expected_rest, atol=1e-5)
 
 
+def test_rest_shape_takes_its_batch_from_the_inputs(builtin_rig):
+    psi = torch.zeros(3, 55)
+    psi[1, builtin_rig.expression_names.index("jawOpen")] = 1.0
+    rest = builtin_rig.rest_shape(psi=psi)
+    assert rest.shape == (3, builtin_rig.num_vertices, 3)
+    alone = builtin_rig.rest_shape()  # no input: one frame, template plus the rest larynx
+    assert alone.shape == (1, builtin_rig.num_vertices, 3)
+    assert torch.allclose(rest[0], alone[0]) and torch.allclose(rest[2], alone[0])
+    assert torch.allclose(rest[1] - rest[0], builtin_rig.expression_deltas[EXPRESSION_NAMES.index("jawOpen")],
+                          atol=1e-5)
+
+
+def test_turned_bone_frames_keep_the_geometry_and_change_the_axes(builtin_rig, turned_rig):
+    """The conftest rig: the built-in rig with oc1 pointing into the face and c1c2 turned about y."""
+    oc1, c1c2 = 7, 6
+    assert float(turned_rig.rest_world[oc1, 2, 1]) > 0.95          # oc1's y axis points forward (+z), as the release's
+    assert torch.allclose(turned_rig(turned_rig.neutral(1)), builtin_rig(builtin_rig.neutral(1)), atol=1e-5)
+    # anatomical frames: the same in the world (the rest rotations), other axes in bone coordinates
+    assert torch.allclose(turned_rig.anatomical_rest_rotations, builtin_rig.anatomical_rest_rotations, atol=1e-6)
+    # oc1: flexion (anatomical +x, lateral) is about its bone x; axial rotation (anatomical +y, up the spine) is
+    # about its bone -z (its y points forward, its z down).  c1c2's bone z points to the subject's left (+x):
+    # its flexion is about its bone z.
+    flexion, axial = torch.zeros(1, 8, 3), torch.zeros(1, 8, 3)
+    flexion[..., 0], axial[..., 1] = 1.0, 1.0
+    assert torch.equal(turned_rig.from_anatomical(flexion)[0, oc1], torch.tensor([1.0, 0.0, 0.0]))
+    assert torch.equal(turned_rig.from_anatomical(axial)[0, oc1], torch.tensor([0.0, 0.0, -1.0]))
+    assert torch.equal(turned_rig.from_anatomical(flexion)[0, c1c2], torch.tensor([0.0, 0.0, 1.0]))
+    theta, *_ = random_inputs(builtin_rig, 4, seed=6)              # anatomical: bone = anatomical on the built-in rig
+    bone = turned_rig.from_anatomical(theta)
+    assert (bone - theta).abs().max() > 0.05                         # the conversion is not the identity ...
+    assert torch.allclose(turned_rig.to_anatomical(bone), theta, atol=1e-6)
+    assert torch.allclose(turned_rig(bone), builtin_rig(theta), atol=1e-4)  # ... and gives the same pose
+    assert torch.allclose(turned_rig.head_rotation(bone), builtin_rig.head_rotation(theta), atol=1e-5)
+
+
 def test_expressions_are_plausible(builtin_rig):
     deltas = builtin_rig.expression_deltas
     names = builtin_rig.expression_names

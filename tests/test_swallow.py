@@ -290,7 +290,7 @@ def test_cli_round_trip_in_process(tmp_path, capsys):
     clips = warped_swallow_clips(6, seed=21, fps_choices=(30.0,))
     paths = write_clips(tmp_path, clips)
     out, plot = tmp_path / "template.csv", tmp_path / "template.png"
-    build = run(compose([f"inputs=[{','.join(paths)}]", "npy_fps=30", f"out={out}", f"plot={plot}"]))
+    build = run(compose([f"inputs=[{','.join(paths)}]", "fps=30", f"out={out}", f"plot={plot}"]))
     table = CsvTable(out)
     assert table.header == ["time", "tau", "std"]
     np.testing.assert_allclose(table.numeric("tau"), build.template.tau, rtol=1e-5, atol=1e-9)
@@ -332,7 +332,7 @@ def test_bad_inputs_name_file_and_what_was_expected(tmp_path):
     from motion.swallow import read_tracks, run
 
     save_npy(tmp_path / "a.npy", np.zeros(50))
-    with pytest.raises(InputError, match=r"a\.npy: .*npy_fps="):
+    with pytest.raises(InputError, match=r"a\.npy: a \.npy tau track carries no frame rate; give fps=\.\.\."):
         read_tracks([tmp_path / "a.npy"])
     bad_number = tmp_path / "n.csv"
     bad_number.write_text("time,tau\n0,0.1\n0.1,oops\n")
@@ -350,6 +350,113 @@ def test_bad_inputs_name_file_and_what_was_expected(tmp_path):
         run(compose([f"inputs=[{bad_number}]", f"out={tmp_path / 'o.csv'}", "swallow.fade_seconds=0"]))
     with pytest.raises(ValueError, match=r"SwallowConfig\.fade_seconds .* must be positive, got -0\.1"):
         SwallowConfig(fade_seconds=-0.1)
+
+
+def tracker_csv(path, tau, fps, lost_before=0, rejected=(), px_per_tau=3000.0):
+    """A motion.track CSV: frame,time,x_px,y_px,tau_px,tau,confidence, NaN and confidence 0 for the first
+    ``lost_before`` frames (not found yet), confidence 0 at ``rejected`` frames (their tau held, here made
+    obviously wrong); px_per_tau=None: no calibration (tau NaN)."""
+    tau = np.array(tau, dtype=np.float64)
+    confidence = np.full(len(tau), 0.8)
+    confidence[:lost_before] = 0.0
+    tau[:lost_before] = np.nan
+    for i in rejected:
+        tau[i], confidence[i] = 0.5, 0.0  # 15 cm: a value no larynx takes
+    tau_px = tau * (px_per_tau or 3000.0)
+    write_csv(path, {"frame": np.arange(len(tau)), "time": np.arange(len(tau)) / fps, "x_px": np.full(len(tau), 64.0),
+                     "y_px": 200 - tau_px, "tau_px": tau_px, "tau": tau if px_per_tau else np.full(len(tau), np.nan),
+                     "confidence": confidence}, float_format="%.9g")
+    return path
+
+
+def test_tracker_csvs_drop_lost_and_rejected_frames(tmp_path):
+    from motion.swallow import run
+
+    clips = warped_swallow_clips(4, seed=31, fps_choices=(30.0,))
+    paths = [tracker_csv(tmp_path / f"track{i}.csv", c.tau, c.fps, lost_before=4) for i, c in enumerate(clips)]
+    out = tmp_path / "template.csv"
+    build = run(compose([f"inputs=[{','.join(map(str, paths))}]", f"out={out}"]))  # min_confidence: 0.3
+    kept = [TauTrack(c.tau[4:], c.time[4:], c.fps, f"clip{i}") for i, c in enumerate(clips)]
+    np.testing.assert_allclose(build.template.tau, build_template(kept).template.tau, atol=1e-6)
+    with pytest.raises(InputError, match=r"track0\.csv: column 'tau', line 2: value is nan"):
+        run(compose([f"inputs=[{','.join(map(str, paths))}]", f"out={out}", "min_confidence=null"]))
+
+    # Playback into a tracker CSV: the rejected frames' held values do not reach the output, which is a
+    # complete uniform track over the frames the tracker found.
+    time = np.arange(120) / 30.0
+    rest = tracker_csv(tmp_path / "rest.csv", np.full(120, 0.01), 30.0, lost_before=3, rejected=(50, 51, 90))
+    played = tmp_path / "played.csv"
+    run(compose(["mode=play", f"track={rest}", f"template={out}", "at=[2.0]", f"out={played}"]))
+    result = read_tau_track(played)
+    np.testing.assert_allclose(result.time, time[3:], atol=1e-6)
+    assert result.tau.max() == pytest.approx(0.01 + build.template.peak_height, rel=0.05)
+    np.testing.assert_allclose(result.tau[:20], 0.01, atol=1e-9)  # rest before the insert: nothing else changed
+
+
+def test_tracker_csv_without_calibration_is_named(tmp_path):
+    from motion.swallow import run
+
+    clip = warped_swallow_clips(1, seed=32, fps_choices=(30.0,))[0]
+    path = tracker_csv(tmp_path / "uncal.csv", clip.tau, clip.fps, px_per_tau=None)
+    with pytest.raises(InputError, match=r"uncal\.csv: .*no calibration.*motion\.track.*px_per_tau=.*cm_per_px=.*kernel=rig"):
+        run(compose([f"inputs=[{path}]", f"out={tmp_path / 't.csv'}"]))
+
+
+def test_fps_key_gives_the_rate_of_frame_only_csvs(tmp_path):
+    """fps= applies to .npy and to CSVs with frame,tau but no time or fps column."""
+    from motion.swallow import run
+
+    clips = warped_swallow_clips(3, seed=33, fps_choices=(30.0,))
+    paths = []
+    for i, c in enumerate(clips):
+        write_csv(tmp_path / f"f{i}.csv", {"frame": np.arange(len(c.tau)), "tau": c.tau}, float_format="%.9g")
+        paths.append(str(tmp_path / f"f{i}.csv"))
+    out = tmp_path / "template.csv"
+    with pytest.raises(InputError, match=r"f0\.csv: column 'frame' without a 'time' or 'fps' column; give fps=\.\.\."):
+        run(compose([f"inputs=[{','.join(paths)}]", f"out={out}"]))
+    build = run(compose([f"inputs=[{','.join(paths)}]", f"out={out}", "fps=30"]))
+    np.testing.assert_allclose(build.template.tau, build_template(tracks_of(clips)).template.tau, atol=1e-6)
+
+
+def test_read_template_rejects_files_that_are_not_templates(tmp_path):
+    from motion.swallow import run
+
+    clip = warped_swallow_clips(1, seed=34, fps_choices=(30.0,))[0]
+    track = tmp_path / "track.csv"
+    write_tau_track(track, TauTrack(clip.tau, clip.time, clip.fps))  # frame,time,tau,fps: a tau track
+    expected = r"not a swallow template written by python -m motion\.swallow"
+    with pytest.raises(InputError, match=rf"track\.csv: {expected}.*no column 'std'"):
+        read_template(track)
+    with pytest.raises(InputError, match=rf"track\.csv: {expected}"):
+        run(compose(["mode=play", f"track={track}", f"template={track}", "at=[1.0]", f"out={tmp_path / 'o.csv'}"]))
+    assert not (tmp_path / "o.csv").exists()
+    for name, start in (("late.csv", 0.5), ("early.csv", -2.0)):  # the onset (time 0) not inside
+        time = start + np.arange(60) / 60.0
+        write_csv(tmp_path / name, {"time": time, "tau": np.zeros(60), "std": np.zeros(60)})
+        with pytest.raises(InputError, match=rf"{name}: {expected}.*: column 'time' runs"):
+            read_template(tmp_path / name)
+
+
+def test_cli_takes_one_input_and_one_onset_without_brackets(tmp_path):
+    from motion.swallow import run
+
+    clip = warped_swallow_clips(1, seed=35, fps_choices=(30.0,))[0]
+    write_tau_track(tmp_path / "one.csv", TauTrack(clip.tau, clip.time, clip.fps))
+    out = tmp_path / "template.csv"
+    build = run(compose([f"inputs={tmp_path / 'one.csv'}", f"out={out}"]))
+    assert len(build.events) == 1 and len(build.clips) == 1 and build.clips[0].source.endswith("one.csv")
+    np.testing.assert_allclose(build.template.tau, build_template(tracks_of([clip])).template.tau, atol=1e-6)
+
+    rest = tmp_path / "rest.csv"
+    write_tau_track(rest, TauTrack(np.full(90, 0.01), np.arange(90) / 30.0, 30.0))
+    scalar = run(compose(["mode=play", f"track={rest}", f"template={out}", "at=1.0", "duration_scale=1.2",
+                          f"out={tmp_path / 'a.csv'}"]))
+    listed = run(compose(["mode=play", f"track={rest}", f"template={out}", "at=[1.0]", "duration_scale=[1.2]",
+                          f"out={tmp_path / 'b.csv'}"]))
+    np.testing.assert_array_equal(scalar.tau, listed.tau)
+    assert scalar.tau.max() > 0.01 + 0.9 * build.template.peak_height  # the swallow is in
+    at_zero = run(compose(["mode=play", f"track={rest}", f"template={out}", "at=0", f"out={tmp_path / 'c.csv'}"]))
+    assert at_zero.tau.max() > 0.01 + 0.5 * build.template.peak_height  # at=0 is an onset, not "no onsets"
 
 
 def test_shift_aligned_error_recovers_a_known_shift():

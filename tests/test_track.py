@@ -332,6 +332,16 @@ def test_yaml_mirrors_config_dataclass():
     assert section == dataclasses.asdict(TrackerConfig())
 
 
+def test_empty_stack_is_an_error_not_a_crash(tmp_path):
+    from motion.track import run as track_run
+
+    save_npy(tmp_path / "empty.npy", np.zeros((0, 64, 64, 3), np.float32))
+    with pytest.raises(InputError, match=r"empty\.npy: no frames"):
+        track_run(compose_config("track", [f"input={tmp_path / 'empty.npy'}", f"out={tmp_path / 't.csv'}",
+                                           "progress=false"]))
+    assert not (tmp_path / "t.csv").exists()
+
+
 def test_cli_reports_bad_input_with_exit_code_2(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     result = subprocess.run([sys.executable, "-m", "motion.track", f"input={tmp_path / 'none'}",
