@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 from pathlib import Path
-from typing import Callable, TypeVar
+from typing import Callable, Iterable, TypeVar
 
 from data.io import InputError
 
@@ -18,21 +18,21 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 Config = TypeVar("Config")
 
 
-def config_dataclass(cls: type[Config], section, where: str, mixed: bool = False) -> Config:
+def config_dataclass(cls: type[Config], section, where: str, other_keys: Iterable[str] = ()) -> Config:
     """The settings dataclass ``cls`` from a config section (a DictConfig or a mapping).
 
-    Every key of ``section`` must be a field of ``cls`` (else InputError naming ``where``, the unknown
-    and the known keys), unless ``mixed``: the section also holds other settings, and only the fields are
-    taken.  Lists become tuples where the field's default is a tuple; a ValueError from the dataclass's
+    Every key of ``section`` must be a field of ``cls`` or one of ``other_keys`` (the section's settings
+    for something else, not passed to ``cls``); any other key is an InputError naming ``where``, the
+    unknown and the known keys.  Lists become tuples where the field's default is a tuple; a ValueError from the dataclass's
     own validation becomes an InputError naming ``where``.
     """
     from omegaconf import DictConfig, OmegaConf
 
     values = OmegaConf.to_container(section, resolve=True) if isinstance(section, DictConfig) else dict(section)
     known = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - set(known))
-    if unknown and not mixed:
-        raise InputError(f"{where}: unknown keys {unknown}; known: {sorted(known)}")
+    unknown = sorted(set(values) - set(known) - set(other_keys))
+    if unknown:
+        raise InputError(f"{where}: unknown keys {unknown}; known: {sorted(set(known) | set(other_keys))}")
     values = {k: v for k, v in values.items() if k in known}
     for name, value in values.items():
         if isinstance(value, list) and isinstance(known[name].default, tuple):

@@ -52,6 +52,7 @@ from data.synthetic_tau import random_tau_trajectory
 
 SEQUENCE_FORMATS = ("png8", "png16", "exr", "npy")
 SEQUENCE_FILES = ("frame_*", "normals.npy", "truth.csv")     # what write_sequence writes into its folder
+CLI_KEYS = ("out", "format", "seed", "rig", "threads")       # configs/normal_sequences.yaml's keys besides SequenceConfig
 
 
 @dataclass
@@ -186,7 +187,7 @@ def run(cfg) -> NormalSequence:
     """The CLI's work for a composed ``configs/normal_sequences.yaml`` (tests call this in-process)."""
     from models.rig import HeadNeckModel
 
-    config = config_dataclass(SequenceConfig, cfg, "configs/normal_sequences.yaml", mixed=True)
+    config = config_dataclass(SequenceConfig, cfg, "configs/normal_sequences.yaml", other_keys=CLI_KEYS)
     if cfg.format not in SEQUENCE_FORMATS:
         raise InputError(f"format={cfg.format}: expected {', '.join(SEQUENCE_FORMATS)}")
     fresh_output_folder(cfg.out, SEQUENCE_FILES, "out")   # before rendering: fail fast on a used folder

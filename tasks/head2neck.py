@@ -25,7 +25,6 @@ clamps and redistributes.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -54,17 +53,13 @@ def prior_config(data: DictConfig) -> PriorConfig:
     training persons)."""
     where = "data (configs/data_task/head2neck_synthetic.yaml)"
     values = OmegaConf.to_container(data, resolve=True)
-    known = set(SYNTHETIC_KEYS) | {f.name for f in dataclasses.fields(PriorConfig)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise InputError(f"{where}: unknown keys {unknown}; known: {sorted(known)}")
     for key in ("train_sequences", "val_sequences"):
         if not int(values[key]) >= 1:
             raise InputError(f"{where}: {key} is {values[key]}, expected at least 1")
     if values["val_seed"] == values["seed"]:
         raise InputError(f"{where}: val_seed equals seed ({values['seed']}): the validation persons would be the "
                          f"training persons; choose another val_seed")
-    return config_dataclass(PriorConfig, {k: v for k, v in values.items() if k not in SYNTHETIC_KEYS}, where)
+    return config_dataclass(PriorConfig, values, where, other_keys=SYNTHETIC_KEYS)
 
 
 def split_sequences(sequences: list[np.ndarray], val_fraction: float, seed: int, path: str
