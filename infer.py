@@ -33,7 +33,10 @@ from tqdm import tqdm
 
 from data.cli import config_dataclass, run_cli
 from data.expressions import ExpressionTrack, read_expressions
-from data.io import InputError, TauTrack, as_list, fresh_output_folder, save_npy, write_tau_track
+from data.cli import as_list
+from data.errors import InputError
+from data.files import fresh_output_folder, save_npy
+from data.tau_track import TauTrack, write_tau_track
 from data.mesh_io import write_obj, write_ply
 from models.checkpoint import load_model
 from models.head2neck import predict_theta

@@ -38,7 +38,8 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 import tasks
-from data.io import InputError, write_text
+from data.errors import InputError
+from data.files import write_text
 from models.checkpoint import load_checkpoint, load_state, save_checkpoint
 
 # Config keys a resumed run may change (configs/trainer/*.yaml): they steer the run, not what it computes.

@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from data.expressions import EXPRESSION_NAMES
-from data.io import InputError, save_npz
+from data.errors import InputError
+from data.files import save_npz
 from data.mesh_io import read_obj
 
 JOINT_NAMES: tuple[str, ...] = ("c7t1", "c6c7", "c5c6", "c4c5", "c3c4", "c2c3", "c1c2", "oc1")

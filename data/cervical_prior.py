@@ -84,7 +84,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data.io import InputError, load_npy
+from data.errors import InputError
+
+from data.files import load_npy
 from models.joint_limits import JOINT_LEVELS, RANGES_DEG
 from models.rotations import euler_to_axis_angle
 

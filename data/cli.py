@@ -1,7 +1,7 @@
 """The shell every command-line tool shares: hydra config from ``configs/<name>.yaml``, clean errors.
 
 A tool's module ends with ``if __name__ == "__main__": run_cli("<name>", run)``; ``run(cfg)`` does
-the work.  Required keys are ``???`` in the tool's config.  Bad input (``data.io.InputError``) or a
+the work.  Required keys are ``???`` in the tool's config.  Bad input (``data.errors.InputError``) or a
 missing required key prints ``error: <message>`` on stderr and exits with status 2, without a
 traceback.  A config's ``threads`` key sets torch's thread count.
 """
@@ -10,9 +10,9 @@ from __future__ import annotations
 import dataclasses
 import sys
 from pathlib import Path
-from typing import Callable, Iterable, TypeVar
+from typing import Callable, Iterable, Sequence, TypeVar
 
-from data.io import InputError
+from data.errors import InputError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 Config = TypeVar("Config")
@@ -70,3 +70,15 @@ def run_cli(config_name: str, run: Callable) -> None:
             sys.exit(2)
 
     main()
+
+
+def as_list(value) -> list:
+    """A config value that may be one item or a list (``at=2.0``, ``at=[1,2]``, ``inputs=a.csv``) as a list.
+
+    None is the empty list; a string is one item (not its characters).
+    """
+    if value is None:
+        return []
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        return [value]
+    return list(value)

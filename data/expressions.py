@@ -30,7 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from data.io import CsvTable, InputError, estimate_fps, load_npy, resample_uniform
+from data.errors import InputError, require_file
+from data.files import load_npy
+from data.tables import CsvTable
+from data.timebase import resample_uniform, row_name, time_axis
 
 EXPRESSION_NAMES: tuple[str, ...] = (
     "browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R",
@@ -63,7 +66,6 @@ def arkit_name(hack_name: str) -> str | None:
 # Range a blendshape weight may take before we call the file malformed: trackers
 # overshoot [0, 1] slightly, degrees or percent do not fit.
 WEIGHT_RANGE = (-0.1, 1.5)
-TIME_COLUMNS = ("time", "timestamp", "seconds", "time_s")
 HEAD_COLUMNS = ("HeadYaw", "HeadPitch", "HeadRoll")
 _PREFIX = re.compile(r"^(blendshapes?[._:])", re.IGNORECASE)
 
@@ -97,81 +99,15 @@ class ExpressionTrack:
         return ExpressionTrack(psi.astype(np.float32), time, float(fps), head, list(self.missing), self.source)
 
 
-def _row(lines: list[int] | None, i: int) -> str:
-    """Where data row ``i`` is: a line of a CSV file, or a row of an array."""
-    return f"line {lines[i]}" if lines is not None else f"row {i}"
-
-
-def _check_weights(psi: np.ndarray, path: Path, names, lines: list[int] | None = None) -> None:
+def check_weights(psi: np.ndarray, path: Path, names, lines: list[int] | None = None) -> None:
     lo, hi = WEIGHT_RANGE
     bad = (psi < lo) | (psi > hi)
     if bad.any():
         row, col = np.argwhere(bad)[0]
         raise InputError(
-            f"{path}: column '{names[col]}', {_row(lines, row)}: weight {psi[row, col]:g} outside "
+            f"{path}: column '{names[col]}', {row_name(lines, row)}: weight {psi[row, col]:g} outside "
             f"[{lo}, {hi}]; expected blendshape weights in [0, 1]"
         )
-
-
-def parse_timecode(codes: list[str], path: Path, rate: float | None = None,
-                   lines: list[int] | None = None) -> np.ndarray:
-    """Seconds from ``HH:MM:SS:FF[.fff]`` timecodes.
-
-    The timecode rate (frames per second of ``FF``) is ``rate`` if given, else
-    the smallest standard rate above the largest frame number seen.  A take
-    whose frame numbers all stay below 23 (under one second) fits every
-    standard rate: that is an InputError asking for ``timecode_fps=...``.
-    """
-    parts = []
-    for i, code in enumerate(codes):
-        m = re.fullmatch(r"(\d+):(\d+):(\d+)[:;](\d+(?:\.\d+)?)", code)
-        if not m:
-            raise InputError(f"{path}: column 'Timecode', {_row(lines, i)}: '{code}' is not HH:MM:SS:FF.fff")
-        parts.append([float(g) for g in m.groups()])
-    hms = np.array(parts)
-    if rate is None:
-        top = np.floor(hms[:, 3]).max()
-        if top < 23:
-            raise InputError(
-                f"{path}: column 'Timecode': frame numbers only reach {top:g}, so the timecode rate is ambiguous "
-                f"(24, 25, 30, ... fps all fit a take under one second); give timecode_fps=..."
-            )
-        rate = next((r for r in (24, 25, 30, 48, 50, 60, 120) if r > top), None)
-        if rate is None:
-            raise InputError(f"{path}: timecode frame {top:g} exceeds 120 fps; give timecode_fps=...")
-    seconds = hms[:, 0] * 3600 + hms[:, 1] * 60 + hms[:, 2] + hms[:, 3] / rate
-    seconds = np.where(seconds < seconds[0] - 43200, seconds + 86400, seconds)  # across midnight
-    return seconds - seconds[0]
-
-
-def _time_axis(table: CsvTable, fps: float | None, timecode_fps: float | None,
-               fps_key: str) -> tuple[np.ndarray, float]:
-    path = table.path
-    lower = {h.lower(): h for h in table.header}
-    if "timecode" in lower:
-        time = parse_timecode(table.text(lower["timecode"]), path, timecode_fps, table.lines)
-    elif any(c in lower for c in TIME_COLUMNS):
-        column = next(lower[c] for c in TIME_COLUMNS if c in lower)
-        time = table.numeric(column)
-        time = time - time[0]
-    elif "frame" in lower:
-        if fps is None:
-            raise InputError(f"{path}: column 'frame' but no time column; give {fps_key}=...")
-        frame = table.numeric(lower["frame"])
-        time = (frame - frame[0]) / fps
-    else:
-        if fps is None:
-            raise InputError(f"{path}: no 'Timecode', 'time' or 'frame' column; give {fps_key}=...")
-        time = np.arange(len(table)) / fps
-    steps = np.diff(time)
-    if (steps <= 0).any():
-        i = int(np.argmax(steps <= 0)) + 1
-        raise InputError(f"{path}: time does not increase at {_row(table.lines, i)} ({time[i]:g} s after {time[i - 1]:g} s)")
-    if fps is None:
-        if len(time) < 2:
-            raise InputError(f"{path}: one row only; give {fps_key}=...")
-        fps = estimate_fps(time)
-    return time, float(fps)
 
 
 def _read_headerless(path: Path, fps: float | None, fps_key: str) -> ExpressionTrack:
@@ -179,7 +115,7 @@ def _read_headerless(path: Path, fps: float | None, fps_key: str) -> ExpressionT
     if fps is None:
         raise InputError(f"{path}: a header-less table carries no frame rate; give {fps_key}=...")
     psi = np.stack([table.numeric(name) for name in EXPRESSION_NAMES], axis=1)
-    _check_weights(psi, path, EXPRESSION_NAMES, table.lines)
+    check_weights(psi, path, EXPRESSION_NAMES, table.lines)
     return ExpressionTrack(psi.astype(np.float32), np.arange(len(psi)) / fps, float(fps), source=str(path))
 
 
@@ -191,16 +127,14 @@ def read_expressions(path: str | os.PathLike, fps: float | None = None,
     column); ``timecode_fps``: the rate of Live Link Face timecode frames (else guessed from the
     frame numbers); ``fps_key``: the caller's config key for ``fps``, named in errors.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+    path = require_file(path)
     if path.suffix.lower() == ".npy":
         psi = load_npy(path, 2, "expression weights [T,55]")
         if psi.shape[1] != NUM_EXPRESSIONS:
             raise InputError(f"{path}: array of shape {psi.shape}, expected expression weights [T,55]")
         if fps is None:
             raise InputError(f"{path}: a .npy expression array carries no frame rate; give {fps_key}=...")
-        _check_weights(psi, path, EXPRESSION_NAMES)
+        check_weights(psi, path, EXPRESSION_NAMES)
         return ExpressionTrack(psi.astype(np.float32), np.arange(len(psi)) / fps, float(fps), source=str(path))
     if path.suffix.lower() != ".csv":
         raise InputError(f"{path}: unsupported expression format '{path.suffix}', expected .csv or .npy")
@@ -240,8 +174,8 @@ def read_expressions(path: str | os.PathLike, fps: float | None = None,
             f"or HACK names (e.g. eyeBlink_L, jawOpen). Columns: {', '.join(table.header[:12])}"
             + (" ..." if len(table.header) > 12 else "")
         )
-    _check_weights(psi, path, columns, table.lines)
-    time, rate = _time_axis(table, fps, timecode_fps, fps_key)
+    check_weights(psi, path, columns, table.lines)
+    time, rate = time_axis(table, fps, timecode_fps, fps_key)
     head = None
     if all(table.has(c) for c in HEAD_COLUMNS):
         head = np.stack([table.numeric(c) for c in HEAD_COLUMNS], axis=1)

@@ -11,7 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from data.io import InputError, atomic_path
+from data.errors import InputError
+
+from data.files import atomic_path
 
 
 @dataclass

@@ -31,7 +31,7 @@ CLI (hydra, ``configs/normal_sequences.yaml``)::
     python -m data.normal_sequences out=frames/ frames=300 seed=0 [format=png8|png16|exr|npy] [noise=0.05]
 
 writes ``frame_00000.png ...`` (or ``normals.npy`` [T,H,W,3] float32 raw normals) and ``truth.csv``
-(``frame,time,tau,x_px,y_px,eta,fps``, ``data.io.write_tau_track``; x_px/y_px the ground truth above)
+(``frame,time,tau,x_px,y_px,eta,fps``, ``data.tau_track.write_tau_track``; x_px/y_px the ground truth above)
 into ``out``.
 """
 from __future__ import annotations
@@ -45,7 +45,9 @@ import numpy as np
 import torch
 
 from data.cli import config_dataclass, run_cli
-from data.io import InputError, TauTrack, fresh_output_folder, save_npy, write_tau_track
+from data.errors import InputError
+from data.files import fresh_output_folder, save_npy
+from data.tau_track import TauTrack, write_tau_track
 from data.render import (DEFAULT_CM_PER_PX, DEFAULT_SIZE, Camera, NeckRenderer, decode_normals, encode_normals,
                          neck_camera, write_normal_image)
 from data.synthetic_tau import random_tau_trajectory
@@ -161,7 +163,7 @@ def make_sequence(rig, config: SequenceConfig, seed: int, chunk: int = 8) -> Nor
 
 def write_sequence(folder: str | Path, sequence: NormalSequence, image_format: str = "png8") -> list[Path]:
     """Write frames (``png8``, ``png16``, ``exr`` images or one ``npy`` stack) and ``truth.csv`` into
-    ``folder`` (new, or without such files: ``data.io.fresh_output_folder``)."""
+    ``folder`` (new, or without such files: ``data.files.fresh_output_folder``)."""
     if image_format not in SEQUENCE_FORMATS:
         raise InputError(f"format={image_format}: expected {', '.join(SEQUENCE_FORMATS)}")
     folder = fresh_output_folder(folder, SEQUENCE_FILES, "out")

@@ -2,12 +2,12 @@
 
 A *pair file* is an ``.npz`` holding one recording:
 - ``psi`` [T,55]: expression weights in ``data.expressions.EXPRESSION_NAMES`` order;
-- ``tau`` [T]: larynx slide in UV units of the larynx map, + = up the neck (``data.io``);
+- ``tau`` [T]: larynx slide in UV units of the larynx map, + = up the neck (``data.tau_track``);
 - ``fps``: frames per second of both (a scalar);
 - optional ``subject`` (a string naming the person), ``eta`` (larynx size, scalar) and
   ``time`` [T] (seconds on the expression recording's clock, informative only).
 
-A *pairs folder* holds many such files; ``data.io.split_by_file`` splits it into training and
+A *pairs folder* holds many such files; ``data.splits.split_by_file`` splits it into training and
 validation **by file**, so no recording is in both.
 
 Capture workflow: the larynx tracker writes a tau track (CSV ``frame,time,x_px,y_px,tau_px,tau,
@@ -35,8 +35,11 @@ import numpy as np
 from omegaconf import DictConfig
 
 from data.cli import run_cli
-from data.expressions import EXPRESSION_NAMES, NUM_EXPRESSIONS, ExpressionTrack, _check_weights, read_expressions
-from data.io import InputError, TauTrack, read_tau_track, resample_uniform, save_npz
+from data.expressions import EXPRESSION_NAMES, NUM_EXPRESSIONS, ExpressionTrack, check_weights, read_expressions
+from data.errors import InputError
+from data.files import save_npz
+from data.tau_track import TauTrack, read_tau_track
+from data.timebase import resample_uniform
 
 
 @dataclass
@@ -106,7 +109,7 @@ def load_pair(path: str | os.PathLike) -> LarynxSequence:
         bad = ~np.isfinite(array)
         if bad.any():
             raise InputError(f"{path}: '{key}' is not finite at frame {int(np.argwhere(bad)[0][0])}")
-    _check_weights(psi, path, EXPRESSION_NAMES)
+    check_weights(psi, path, EXPRESSION_NAMES)
     fps = _scalar(data, "fps", path)
     if fps <= 0:
         raise InputError(f"{path}: 'fps' is {fps:g}, expected a positive frame rate")

@@ -44,7 +44,9 @@ import cv2
 import numpy as np
 import torch
 
-from data.io import InputError, atomic_path
+from data.errors import InputError
+
+from data.files import atomic_path
 from data.mesh_io import triangulate
 
 DEFAULT_SIZE = 256          # pixels, square

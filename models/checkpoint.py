@@ -14,7 +14,9 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from data.io import InputError, atomic_path
+from data.errors import InputError
+
+from data.files import atomic_path
 
 
 def save_checkpoint(path: str | os.PathLike, state: dict) -> None:

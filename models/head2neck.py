@@ -54,7 +54,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from data.io import InputError
+from data.errors import InputError
 from models.joint_limits import euler_limits, range_of_motion_shares
 from models.rotations import (axis_angle_to_euler, axis_angle_to_quaternion, euler_to_axis_angle, euler_to_quaternion,
                               matrix_to_axis_angle, matrix_to_quaternion, matrix_to_rot6d, quaternion_multiply,

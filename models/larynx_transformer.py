@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from data.expressions import NUM_EXPRESSIONS
-from data.io import InputError
+from data.errors import InputError
 
 # Sizes come from configs/model/larynx_transformer.yaml (their one home, documented there).
 SIZES = ("d_model", "n_heads", "n_layers", "d_ff", "window", "cross_window", "period", "expression_layers",

@@ -57,7 +57,8 @@ from omegaconf import DictConfig
 
 from data.cli import run_cli
 from data.expressions import read_expressions
-from data.io import InputError, load_npy, save_npy
+from data.errors import InputError
+from data.files import load_npy, save_npy
 from models.checkpoint import load_model
 from models.head2neck import head_error_deg, predict_theta
 from models.joint_limits import within_limits

@@ -5,7 +5,7 @@ swallows aligned in time by their peaks and valleys; the curve then drives the
 larynx slide ``tau`` of any HACK character (``HeadNeckModel(...)(theta,
 tau=...)``).  This module builds that curve and inserts it into tau tracks.
 
-Conventions (tau units and sign: ``data.io``; shape: ``data.synthetic_tau``):
+Conventions (tau units and sign: ``data.tau_track``; shape: ``data.synthetic_tau``):
 
 - A swallow has up to five landmarks, in this order: ``onset`` (leaves rest),
   ``dip`` (small preparatory valley below rest before the rise), ``peak``
@@ -37,7 +37,7 @@ CLI (hydra, ``configs/swallow.yaml``)::
     python -m motion.swallow mode=play track=in.csv template=template.csv at=[2.0,7.5] out=out.csv \\
         [duration_scale=1.2] [amplitude_scale=0.8] [plot=play.png]
 
-Inputs are tau tracks (``data.io.read_tau_track``: CSV with ``tau`` and
+Inputs are tau tracks (``data.tau_track.read_tau_track``: CSV with ``tau`` and
 ``time`` or ``frame`` [+ ``fps``], or ``.npy``); ``fps=...`` is the frame rate
 of files that carry none (``.npy``, a CSV with ``frame`` but no ``time`` or
 ``fps`` column).  Tracker CSVs (``python -m motion.track``) lose the rows below
@@ -59,8 +59,13 @@ from scipy.ndimage import gaussian_filter1d, median_filter
 from scipy.signal import find_peaks
 
 from data.cli import config_dataclass, run_cli
-from data.io import (CsvTable, InputError, TauTrack, as_list, check_increasing, estimate_fps, figure, read_tau_track,
-                     resample_uniform, save_figure, write_csv, write_tau_track)
+from data.cli import as_list
+from data.errors import InputError
+from data.files import write_csv
+from data.plots import figure, save_figure
+from data.tables import CsvTable
+from data.tau_track import TauTrack, read_tau_track, write_tau_track
+from data.timebase import check_increasing, estimate_fps, resample_uniform
 from motion.signal import parabolic_peak
 
 LANDMARK_NAMES: tuple[str, ...] = ("onset", "dip", "peak", "undershoot", "return")
@@ -719,7 +724,7 @@ def read_template(path: str | Path) -> SwallowTemplate:
 
 def read_tracks(paths: Sequence[str | Path], fps: float | None = None,
                 min_confidence: float | None = None) -> list[TauTrack]:
-    """Tau tracks from CSV or .npy files (``data.io.read_tau_track``).
+    """Tau tracks from CSV or .npy files (``data.tau_track.read_tau_track``).
 
     ``fps``: the frame rate of files that carry none (.npy, a CSV with ``frame`` but no ``time``/``fps``);
     ``min_confidence``: tracker rows below it are dropped (files without a ``confidence`` column are read

@@ -101,7 +101,9 @@ import torch
 from scipy.ndimage import gaussian_filter1d
 
 from data.cli import config_dataclass, run_cli
-from data.io import InputError, figure, load_npy, save_figure, write_csv
+from data.errors import InputError
+from data.files import load_npy, write_csv
+from data.plots import figure, save_figure
 from data.render import (DEFAULT_CM_PER_PX, FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, NeckRenderer,
                          decode_normals, neck_camera, read_normal_image, stored_to_unit)
 from motion.signal import parabolic_peak

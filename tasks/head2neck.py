@@ -33,7 +33,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from data.cervical_prior import PriorConfig, head_rotations, load_theta_sequences, sample_sequences
 from data.cli import config_dataclass
-from data.io import InputError, split_by_file
+from data.errors import InputError
+from data.splits import split_by_file
 from models.head2neck import build_model, chain_head_rotation, correct_to_head, head_error_deg, split_head_rotation
 from models.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
 from models.rig import HeadNeckModel
@@ -64,7 +65,7 @@ def prior_config(data: DictConfig) -> PriorConfig:
 
 def split_sequences(sequences: list[np.ndarray], val_fraction: float, seed: int, path: str
                     ) -> tuple[list[np.ndarray], list[np.ndarray], str]:
-    """(train, val, description): by file when there are several (``data.io.split_by_file``), else the
+    """(train, val, description): by file when there are several (``data.splits.split_by_file``), else the
     last ``val_fraction`` of the one file's frames."""
     if len(sequences) == 1:
         if not 0 < val_fraction < 1:

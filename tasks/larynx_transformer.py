@@ -24,7 +24,9 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from data.io import InputError, split_by_file
+from data.errors import InputError
+
+from data.splits import split_by_file
 from data.pairs import LarynxSequence, load_pairs
 from models.larynx_transformer import build_model  # also the task protocol's build_model(model_config)
 

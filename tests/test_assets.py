@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from data.assets import RigData, convert
-from data.io import InputError
+from data.errors import InputError
 from data.mesh_io import read_obj, triangulate, write_obj, write_ply
 from models.rig import HeadNeckModel
 from release_layout import write_release

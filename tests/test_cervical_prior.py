@@ -12,7 +12,8 @@ import yaml
 from conftest import AXIAL_ONE_SIDE, SAGITTAL_TOTAL
 from data.cervical_prior import (C1C2, MOTION_KINDS, OC1, PriorConfig, head_rotations, load_theta_sequences,
                                  sample_persons, sample_sequences, segmental_euler)
-from data.io import InputError, save_npy
+from data.errors import InputError
+from data.files import save_npy
 from models.joint_limits import RANGES_DEG, within_limits
 
 REPO = Path(__file__).resolve().parents[1]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from data.expressions import EXPRESSION_NAMES, read_expressions
-from data.io import InputError
+from data.errors import InputError
 
 K = {name: k for k, name in enumerate(EXPRESSION_NAMES)}
 
@@ -143,7 +143,7 @@ def test_timecode_and_time_errors(tmp_path):
     with pytest.raises(InputError, match=r"take.csv: column 'Timecode', line 3: '12:21:59:xx' is not HH:MM:SS:FF"):
         read_expressions(write(tmp_path / "take.csv", LLF_HEADER, rows))
     path = write(tmp_path / "back.csv", ["time", "jawOpen"], ["0.0,0.1", "0.1,0.1", "0.05,0.2"])
-    with pytest.raises(InputError, match=r"back.csv: time does not increase at line 4"):
+    with pytest.raises(InputError, match=r"back.csv: column 'time' must increase, but line 4"):
         read_expressions(path)
     path = write(tmp_path / "none.csv", ["time", "foo", "bar"], ["0.0,1,2", "0.1,1,2"])
     with pytest.raises(InputError, match=r"none.csv: no expression columns found.*Columns: time, foo, bar"):

@@ -19,7 +19,8 @@ from scipy.spatial.transform import Rotation
 import train
 from conftest import AXIAL_ONE_SIDE, QUARTER_TURN_X, QUARTER_TURN_Y
 from data.cervical_prior import head_rotations, sample_sequences
-from data.io import InputError, save_npy, write_csv
+from data.errors import InputError
+from data.files import save_npy, write_csv
 from models.checkpoint import load_model
 from models.head2neck import (build_model, chain_head_rotation, correct_to_head, head_chain, head_error_deg,
                               predict_theta, split_head_rotation)

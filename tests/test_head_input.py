@@ -6,7 +6,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from data.io import InputError, save_npy
+from data.errors import InputError
+
+from data.files import save_npy
 from motion.head2neck import read_head_rotations, recentered
 
 

@@ -9,7 +9,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from data.io import read_tau_track, write_csv
+from data.files import write_csv
+
+from data.tau_track import read_tau_track
 from data.synthetic_tau import swallow_profile
 from models.checkpoint import save_checkpoint
 from models.head2neck import build_model
@@ -80,7 +82,7 @@ def compose_infer(overrides: list[str]):
      r"swallow_playback \(configs/infer\.yaml\): SwallowConfig\.blend must be 'replace' or 'add', got 'mix'"),
 ])
 def test_bad_requests_are_named_and_nothing_is_written(tmp_path, overrides, message):
-    from data.io import InputError
+    from data.errors import InputError
     from infer import run
 
     write_csv(tmp_path / "take.csv", {"time": np.arange(90) / 30, "jawOpen": np.zeros(90)})  # a neutral face

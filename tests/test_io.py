@@ -4,7 +4,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from data.io import CsvTable, InputError, as_list, atomic_path, read_tau_track, save_npy, write_csv
+from data.cli import as_list
+
+from data.errors import InputError
+
+from data.files import atomic_path, save_npy, write_csv
+
+from data.tables import CsvTable
+
+from data.tau_track import read_tau_track
 
 
 def test_tracker_rows_below_confidence_are_dropped(tmp_path):

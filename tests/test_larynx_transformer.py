@@ -13,7 +13,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from data.expressions import EXPRESSION_NAMES
-from data.io import InputError, read_tau_track, write_csv
+from data.errors import InputError
+from data.files import write_csv
+from data.tau_track import read_tau_track
 from data.pairs import save_pair
 from data.synthetic_larynx import (HELDOUT_SUBJECT_START, SWALLOW_PRESS_THRESHOLD, generate_expressions,
                                    larynx_response, make_dataset, make_sequence, split_subjects, subject_params)

@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 
 from data.expressions import EXPRESSION_NAMES, read_expressions
-from data.io import InputError, read_tau_track, save_npy, save_npz, split_by_file, write_csv
+from data.errors import InputError
+from data.files import save_npy, save_npz, write_csv
+from data.splits import split_by_file
+from data.tau_track import read_tau_track
 from data.pairs import LarynxSequence, align_pair, load_pair, load_pairs, save_pair
 
 REPO = Path(__file__).resolve().parents[1]

@@ -13,7 +13,7 @@ import pytest
 import torch
 import yaml
 
-from data.io import InputError
+from data.errors import InputError
 from data.normal_sequences import SequenceConfig, head_motion, make_sequence, write_sequence
 from data.render import (Camera, NeckRenderer, encode_normals, larynx_areas, larynx_point, neck_camera, outward_faces,
                          read_normal_image, render_normals, rest_larynx_point, stored_to_unit, write_normal_image)

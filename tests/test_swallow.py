@@ -17,7 +17,13 @@ import numpy as np
 import pytest
 import yaml
 
-from data.io import CsvTable, InputError, TauTrack, read_tau_track, save_npy, write_csv, write_tau_track
+from data.errors import InputError
+
+from data.files import save_npy, write_csv
+
+from data.tables import CsvTable
+
+from data.tau_track import TauTrack, read_tau_track, write_tau_track
 from data.synthetic_tau import (SWALLOW_AMPLITUDE, SWALLOW_DURATION, SwallowShape, random_monotone_warps,
                                 random_tau_trajectory, swallow_landmark_times, swallow_profile,
                                 warped_swallow_clips)

@@ -19,7 +19,11 @@ import torch
 import yaml
 from hydra import compose, initialize_config_dir
 
-from data.io import CsvTable, InputError, save_npy
+from data.errors import InputError
+
+from data.files import save_npy
+
+from data.tables import CsvTable
 from data.normal_sequences import SequenceConfig, make_sequence, write_sequence
 from data.render import NeckRenderer, encode_normals, neck_camera, write_normal_image
 from motion.signal import parabolic_peak

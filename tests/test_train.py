@@ -13,7 +13,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import train
-from data.io import InputError
+from data.errors import InputError
 from models.checkpoint import load_checkpoint, load_model, save_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]

@@ -1,0 +1,24 @@
+"""Training and validation splits by recording, never by frame."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from data.errors import InputError
+
+
+def split_by_file(items: Sequence, val_fraction: float, seed: int, what: str = "file") -> tuple[list, list]:
+    """Split recordings by file: (train, validation) lists of ``items``, no item in both.
+
+    ``round(val_fraction * len(items))`` items are held out, at least one and at most all but one;
+    which ones is a permutation drawn from ``seed`` (deterministic), each list keeps the input order.
+    ``what`` names the items in the error for fewer than two.
+    """
+    if len(items) < 2:
+        raise InputError(f"{len(items)} {what}(s); need at least 2 to split into training and validation")
+    if not 0 < val_fraction < 1:
+        raise InputError(f"val_fraction must be in (0, 1), got {val_fraction}")
+    count = min(len(items) - 1, max(1, int(round(val_fraction * len(items)))))
+    held_out = set(np.random.default_rng(seed).permutation(len(items))[:count].tolist())
+    return ([x for i, x in enumerate(items) if i not in held_out], [x for i, x in enumerate(items) if i in held_out])
