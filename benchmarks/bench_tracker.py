@@ -32,7 +32,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from data.normal_sequences import SequenceConfig, head_motion, make_sequence  # noqa: E402
-from data.render import NeckRenderer, encode_normals, render_normals, stored_to_unit  # noqa: E402
+from data.normals import encode_normals, stored_to_unit
+from data.render import NeckRenderer, render_normals
 from models.rig import HeadNeckModel  # noqa: E402
 from motion.track import (TrackerConfig, check_normal_map, decode_frame, raw_correlation_argmax,  # noqa: E402
                           rig_kernel, track_frames)

@@ -27,10 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+from data.cli import REQUIRED, register_config, run_cli
 from data.expressions import EXPRESSION_NAMES
 from data.errors import InputError
 from data.files import save_npz
 from data.mesh_io import read_obj
+from data.normals import stored_to_unit
 
 JOINT_NAMES: tuple[str, ...] = ("c7t1", "c6c7", "c5c6", "c4c5", "c3c4", "c2c3", "c1c2", "oc1")
 RIG_FORMAT_VERSION = 1
@@ -196,7 +198,6 @@ def per_vertex_uv(num_vertices: int, faces: np.ndarray, faces_uv: np.ndarray, uv
 def read_larynx_map(path: Path) -> np.ndarray:
     import cv2
 
-    from data.render import stored_to_unit  # here, not at the top: importing data.assets needs no torch
 
     image = cv2.imread(str(_require(path, "larynx displacement map")), cv2.IMREAD_UNCHANGED)
     if image is None:
@@ -295,6 +296,18 @@ def convert(hack_dir: str | os.PathLike, ict_dir: str | os.PathLike, out: str | 
     return rig
 
 
+@dataclass
+class AssetsCli:
+    """``python -m data.assets``: the release and ICT-FaceKit folders, and the rig file to write."""
+
+    hack_dir: str = REQUIRED
+    ict_dir: str = REQUIRED
+    out: str = "rig.npz"
+
+
+register_config("assets_schema", AssetsCli)
+
+
 def run(cfg) -> RigData:
     """``python -m data.assets``: convert and report."""
     started = time.perf_counter()
@@ -306,6 +319,4 @@ def run(cfg) -> RigData:
 
 
 if __name__ == "__main__":
-    from data.cli import run_cli
-
-    run_cli("assets", run)
+    run_cli("assets", run, doc=__doc__)

@@ -48,8 +48,8 @@ from data.cli import config_dataclass, run_cli
 from data.errors import InputError
 from data.files import fresh_output_folder, save_npy
 from data.tau_track import TauTrack, write_tau_track
-from data.render import (DEFAULT_CM_PER_PX, DEFAULT_SIZE, Camera, NeckRenderer, decode_normals, encode_normals,
-                         neck_camera, write_normal_image)
+from data.normals import decode_normals, encode_normals, write_normal_image
+from data.render import Camera, DEFAULT_CM_PER_PX, DEFAULT_SIZE, NeckRenderer, neck_camera
 from data.synthetic_tau import random_tau_trajectory
 
 SEQUENCE_FORMATS = ("png8", "png16", "exr", "npy")

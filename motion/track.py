@@ -104,8 +104,8 @@ from data.cli import config_dataclass, run_cli
 from data.errors import InputError
 from data.files import load_npy, write_csv
 from data.plots import figure, save_figure
-from data.render import (DEFAULT_CM_PER_PX, FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, NeckRenderer,
-                         decode_normals, neck_camera, read_normal_image, stored_to_unit)
+from data.normals import FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, decode_normals, read_normal_image, stored_to_unit
+from data.render import DEFAULT_CM_PER_PX, NeckRenderer, neck_camera
 from motion.signal import parabolic_peak
 
 KERNEL_SIZE = 70                 # the paper's 70x70x3 kernel

@@ -15,8 +15,8 @@ import yaml
 
 from data.errors import InputError
 from data.normal_sequences import SequenceConfig, head_motion, make_sequence, write_sequence
-from data.render import (Camera, NeckRenderer, encode_normals, larynx_areas, larynx_point, neck_camera, outward_faces,
-                         read_normal_image, render_normals, rest_larynx_point, stored_to_unit, write_normal_image)
+from data.normals import encode_normals, read_normal_image, stored_to_unit, write_normal_image
+from data.render import Camera, NeckRenderer, larynx_areas, larynx_point, neck_camera, outward_faces, render_normals, rest_larynx_point
 
 
 def grid_plane(size_cm: float, z: float, cells: int = 8) -> tuple[torch.Tensor, torch.Tensor]:

@@ -25,7 +25,8 @@ from data.files import save_npy
 
 from data.tables import CsvTable
 from data.normal_sequences import SequenceConfig, make_sequence, write_sequence
-from data.render import NeckRenderer, encode_normals, neck_camera, write_normal_image
+from data.normals import encode_normals, write_normal_image
+from data.render import NeckRenderer, neck_camera
 from motion.signal import parabolic_peak
 from motion.track import (LarynxTracker, Track, TrackerConfig, check_normal_map, decode_frame, kernel_from_file,
                           kernel_from_frame, open_source, raw_correlation_argmax, rescale_kernel, rig_kernel,
