@@ -38,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 import tasks
+from data.cli import compose_config
 from data.errors import InputError
 from data.files import write_text
 from models.checkpoint import load_checkpoint, load_state, save_checkpoint
@@ -218,5 +219,19 @@ def main(cfg: DictConfig) -> None:
         sys.exit(2)
 
 
+def check_command_line(argv: list[str]) -> None:
+    """Compose the config once before hydra runs it, so an unknown key, a wrong type or a missing value is
+    one line and exit status 2 (data.cli) rather than hydra's report.  Sweeps (``-m``) and hydra's own
+    flags and keys are left to hydra."""
+    if any(arg.startswith("-") for arg in argv):
+        return
+    try:
+        compose_config("train", [arg for arg in argv if not arg.startswith(("hydra.", "hydra/", "+hydra"))])
+    except InputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
 if __name__ == "__main__":
+    check_command_line(sys.argv[1:])
     main()

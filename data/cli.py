@@ -50,7 +50,7 @@ def config_error(error: BaseException) -> InputError:
     cause = error.__cause__ or error.__context__
     while cause is not None and len(parts) < 3:
         line = _first_line(cause)
-        if line and line not in parts:
+        if line and line not in parts and "$VALUE" not in line:
             parts.append(line)
         cause = cause.__cause__ or cause.__context__
     return InputError(": ".join(p.rstrip(".") for p in parts if p))

@@ -1,7 +1,7 @@
 """Checkpoints: one ``.pt`` file holding the model, what rebuilds it, and the training state.
 
 Layout of a checkpoint dict:
-``task`` (name), ``model_config`` (dict for the task's ``build_model``),
+``task`` (name), ``model_config`` (dict for the model's ``build_model``, :data:`MODEL_BUILDERS`),
 ``model`` (state dict), ``step``, and for resuming ``optimizer``,
 ``scheduler``, ``config`` (the resolved run config).  Only plain containers, numbers, strings and
 tensors: checkpoints are read with ``torch.load(weights_only=True)``, which runs no pickled code.
@@ -15,8 +15,14 @@ import torch
 from torch import nn
 
 from data.errors import InputError
-
 from data.files import atomic_path
+from models import head2neck, larynx_transformer
+
+# What rebuilds each task's model from its checkpoint's ``model_config``.
+MODEL_BUILDERS = {
+    "larynx_transformer": larynx_transformer.build_model,
+    "head2neck": head2neck.build_model,
+}
 
 
 def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
@@ -43,17 +49,14 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
 
 def load_model(path: str | os.PathLike, task: str | None = None) -> tuple[nn.Module, dict]:
     """Rebuild a trained model from a checkpoint; returns (model in eval mode, checkpoint dict)."""
-    from tasks import task_module
-
     state = load_checkpoint(path)
     if task is not None and state["task"] != task:
         raise InputError(f"{path}: checkpoint of task '{state['task']}', expected '{task}'")
+    if state["task"] not in MODEL_BUILDERS:
+        raise InputError(f"{path}: checkpoint of unknown task '{state['task']}', expected one of "
+                         f"{', '.join(MODEL_BUILDERS)}")
     try:
-        module = task_module(state["task"])
-    except ValueError as e:  # an unknown task name
-        raise InputError(f"{path}: {e}") from None
-    try:
-        model = module.build_model(state["model_config"])
+        model = MODEL_BUILDERS[state["task"]](state["model_config"])
     except ValueError as e:
         raise InputError(f"{path}: checkpoint written by an incompatible version of the code: its model_config "
                          f"does not build ({e})") from None

@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from data.assets import RigData
+from data.procedural_rig import build_procedural_rig
 from models.rotations import axis_angle_to_matrix
 
 # ----------------------------------------------------------------------------- pure steps
@@ -191,8 +192,6 @@ class HeadNeckModel(nn.Module):
     @classmethod
     def builtin(cls) -> "HeadNeckModel":
         """The built-in procedural rig (no download)."""
-        from data.procedural_rig import build_procedural_rig
-
         return cls(build_procedural_rig())
 
     @classmethod
