@@ -139,8 +139,12 @@ def read_expressions(path: str | os.PathLike, fps: float | None = None,
     if path.suffix.lower() != ".csv":
         raise InputError(f"{path}: unsupported expression format '{path.suffix}', expected .csv or .npy")
 
-    with open(path, encoding="utf-8-sig") as f:
-        first = f.readline().strip().split(",")
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            first = f.readline().strip().split(",")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not a text CSV (byte {e.start} is not UTF-8 text); expected an expression "
+                         f"recording") from None
     try:
         [float(x) for x in first]
         headerless = True

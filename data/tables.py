@@ -22,8 +22,14 @@ class CsvTable:
 
     def __init__(self, path: str | os.PathLike, skip_row=None, columns: Sequence[str] | None = None):
         self.path = require_file(path)
-        with open(self.path, newline="", encoding="utf-8-sig") as f:
-            numbered = [(n + 1, row) for n, row in enumerate(csv.reader(f)) if row and any(c.strip() for c in row)]
+        try:
+            with open(self.path, newline="", encoding="utf-8-sig") as f:
+                numbered = [(n + 1, row) for n, row in enumerate(csv.reader(f)) if row and any(c.strip() for c in row)]
+        except UnicodeDecodeError as e:
+            raise InputError(f"{self.path}: not a text CSV (byte {e.start} is not UTF-8 text); expected a "
+                             f"comma-separated table") from None
+        except csv.Error as e:
+            raise InputError(f"{self.path}: not a readable CSV ({e})") from None
         if columns is None:
             if not numbered:
                 raise InputError(f"{self.path}: empty file, expected a header row and data rows")

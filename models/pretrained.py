@@ -1,0 +1,127 @@
+"""The models that ship with the project, under ``models/pretrained/``, and their manifest.
+
+``models/pretrained/manifest.json`` lists each shipped file: what it is (``task``), the command and the
+commit that produced it, its evaluation figures, and its sha256.  The files are weights-only
+checkpoints (``models.checkpoint``: ``task``, ``model_config``, ``model``; no optimiser state), trained
+by ``train.py`` on the built-in procedural rig and synthetic data only: nothing in them is derived from
+the HACK release.  ``benchmarks/retrain_pretrained.py`` retrains them and compares with the manifest.
+
+Shipping a trained run: ``python -m models.pretrained run=runs/<task>/<time> name=<file stem>``.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from data.cli import REQUIRED, register_config, run_cli
+from data.errors import InputError
+from data.files import write_text
+from models.checkpoint import load_checkpoint, load_model, save_checkpoint
+
+PRETRAINED = Path(__file__).resolve().parent / "pretrained"
+MANIFEST = PRETRAINED / "manifest.json"
+# The default model of each task, used by infer.py when no checkpoint is given.
+DEFAULTS = {"larynx_transformer": "larynx_transformer", "head2neck": "head2neck"}
+
+
+def sha256(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def read_manifest() -> dict:
+    """The manifest: {name: {file, task, sha256, command, commit, eval, ...}}; {} when nothing ships."""
+    if not MANIFEST.is_file():
+        return {}
+    try:
+        return json.loads(MANIFEST.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"{MANIFEST}: not valid JSON ({e})") from None
+
+
+def pretrained_path(name: str) -> Path:
+    """The shipped checkpoint ``name`` after checking it against its manifest entry (file and sha256)."""
+    manifest = read_manifest()
+    if name not in manifest:
+        raise InputError(f"no shipped model '{name}' in {MANIFEST} (shipped: {', '.join(manifest) or 'none'})")
+    path = PRETRAINED / manifest[name]["file"]
+    if not path.is_file():
+        raise InputError(f"{path}: shipped model file missing (listed in {MANIFEST})")
+    if sha256(path) != manifest[name]["sha256"]:
+        raise InputError(f"{path}: sha256 differs from {MANIFEST}; the file is damaged or was replaced")
+    return path
+
+
+def default_checkpoint(task: str) -> Path:
+    """The shipped default model of ``task``."""
+    return pretrained_path(DEFAULTS[task])
+
+
+def load_default(task: str):
+    """(model in eval mode, checkpoint dict) of the shipped default model of ``task``."""
+    return load_model(default_checkpoint(task), task=task)
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
+                             cwd=PRETRAINED.parent.parent)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, cwd=PRETRAINED.parent.parent).stdout.strip()
+        return out.stdout.strip() + ("+uncommitted changes" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def ship(run_dir: str | os.PathLike, name: str, command: str, checkpoint: str = "last.pt") -> dict:
+    """Write the weights of a ``train.py`` run as ``models/pretrained/<name>.pt`` and its manifest entry."""
+    run_dir = Path(run_dir)
+    state = load_checkpoint(run_dir / "checkpoints" / checkpoint)
+    evaluation_path = run_dir / "eval.json"
+    if not evaluation_path.is_file():
+        raise InputError(f"{evaluation_path}: not found; ship a finished run (it writes eval.json at the end)")
+    evaluation = json.loads(evaluation_path.read_text())
+    path = PRETRAINED / f"{name}.pt"
+    weights = {"task": state["task"], "model_config": state["model_config"], "step": state.get("step"),
+               "model": {k: v.clone() for k, v in state["model"].items()}}
+    save_checkpoint(path, weights)
+    load_model(path, task=state["task"])  # it must rebuild
+    manifest = read_manifest()
+    manifest[name] = {"file": path.name, "task": state["task"], "sha256": sha256(path), "bytes": path.stat().st_size,
+                      "command": command, "commit": git_commit(), "eval": evaluation,
+                      "trained_on": "built-in procedural rig and synthetic data (no third-party data)"}
+    write_text(MANIFEST, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    return manifest[name]
+
+
+@dataclass
+class ShipCli:
+    """``python -m models.pretrained``: ship a finished train.py run."""
+
+    run: str = REQUIRED       # the run directory (runs/<task>/<time>)
+    name: str = REQUIRED      # file stem under models/pretrained/
+    command: str = REQUIRED   # the command that produced the run, for the manifest
+    checkpoint: str = "last.pt"
+
+
+register_config("pretrained_schema", ShipCli)
+
+
+def run(cfg) -> None:
+    entry = ship(cfg.run, cfg.name, cfg.command, cfg.checkpoint)
+    print(f"{PRETRAINED / entry['file']}: {entry['bytes'] / 1e6:.2f} MB, sha256 {entry['sha256'][:12]}..., "
+          f"task {entry['task']}")
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    run_cli("pretrained", run, doc=__doc__)
