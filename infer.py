@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 import torch
@@ -81,18 +81,18 @@ class SwallowPlayback:
 class InferConfig:
     """``python infer.py``: settings (see the module docstring)."""
 
-    expressions: Optional[str] = None  # a recording (.csv/.npy), a folder of them, or null for the demo take
-    out_dir: Optional[str] = None      # null: runs/infer/<time>/
-    fps: Optional[float] = None        # frame rate of header-less or .npy expressions (others carry their own)
-    timecode_fps: Optional[float] = None  # Live Link Face timecode rate, needed for takes under a second
-    out_fps: Optional[float] = None    # output rate without a larynx model; null = the recording's
+    expressions: str | None = None  # a recording (.csv/.npy), a folder of them, or null for the demo take
+    out_dir: str | None = None      # null: runs/infer/<time>/
+    fps: float | None = None        # frame rate of header-less or .npy expressions (others carry their own)
+    timecode_fps: float | None = None  # Live Link Face timecode rate, needed for takes under a second
+    out_fps: float | None = None    # output rate without a larynx model; null = the recording's
     allow_missing: bool = False        # run a capture that lacks some ARKit expression columns (left at 0)
     # expressions -> tau
     checkpoint: str = "default"        # larynx model: default (shipped) | none (the larynx rests) | a checkpoint
-    subject: Optional[str] = None      # a training subject's style; null = the average style
+    subject: str | None = None      # a training subject's style; null = the average style
     eta: float = 1.0                   # larynx size
     # swallows
-    swallow_template: Optional[str] = None  # template CSV from python -m motion.swallow
+    swallow_template: str | None = None  # template CSV from python -m motion.swallow
     swallow_at: list[float] = field(default_factory=list)  # onset times (s)
     swallow_duration_scale: Any = 1.0  # one value or one per onset
     swallow_amplitude_scale: Any = 1.0
@@ -105,7 +105,7 @@ class InferConfig:
     roll_sign: float = 1.0
     recenter: bool = False
     # rig and outputs
-    rig: Optional[str] = None          # rig file from python -m data.assets; null = the built-in rig
+    rig: str | None = None          # rig file from python -m data.assets; null = the built-in rig
     meshes: bool = False               # one mesh per frame in meshes/
     mesh_format: str = "ply"           # ply | obj
     export: list[str] = field(default_factory=list)  # glb, mp4
@@ -139,8 +139,8 @@ class Models:
 
     rig: HeadNeckModel
     rig_name: str
-    larynx: Optional[torch.nn.Module] = None
-    neck: Optional[torch.nn.Module] = None
+    larynx: torch.nn.Module | None = None
+    neck: torch.nn.Module | None = None
     producers: dict = field(default_factory=dict)
 
 
@@ -169,7 +169,8 @@ def load_models(cfg: InferConfig, announce=print) -> Models:
     if choice == "default":
         if "head2neck" in read_manifest():
             neck_path = default_checkpoint("head2neck")
-            announce(f"neck: the shipped model {neck_path.name} (head2neck=<file> for another, head2neck=none for none)")
+            announce(f"neck: the shipped model {neck_path.name} (head2neck=<file> for another, head2neck=none "
+                     f"for none)")
             producers["head2neck"] = f"shipped:{neck_path.name}"
         else:
             announce("neck: no shipped model in models/pretrained; the neck rests (give head2neck=<file>)")

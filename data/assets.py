@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from data.cli import REQUIRED, register_config, run_cli
-from data.expressions import EXPRESSION_NAMES
 from data.errors import InputError
+from data.expressions import EXPRESSION_NAMES
 from data.files import save_npz
 from data.mesh_io import read_obj
 from data.normals import stored_to_unit
@@ -88,18 +88,23 @@ class RigData:
         j = len(self.joint_names)
         checks = [
             (lambda: self.template.shape == (n, 3), f"template {self.template.shape}, expected [N,3]"),
-            (lambda: self.faces.ndim == 2 and self.faces.shape[1] in (3, 4), f"faces {self.faces.shape}, expected [F,3|4]"),
-            (lambda: self.faces.size == 0 or (self.faces.min() >= 0 and self.faces.max() < n), "faces index outside the vertices"),
+            (lambda: self.faces.ndim == 2 and self.faces.shape[1] in (3, 4),
+             f"faces {self.faces.shape}, expected [F,3|4]"),
+            (lambda: self.faces.size == 0 or (self.faces.min() >= 0 and self.faces.max() < n),
+             "faces index outside the vertices"),
             (lambda: self.vertex_uv.shape == (n, 2), f"vertex_uv {self.vertex_uv.shape}, expected [{n},2]"),
             (lambda: self.parents.shape == (j,), f"parents {self.parents.shape}, expected [{j}]"),
             (lambda: all(-1 <= p < i for i, p in enumerate(self.parents)), "parents must precede their children"),
-            (lambda: self.joint_rest_local.shape == (j, 4, 4), f"joint_rest_local {self.joint_rest_local.shape}, expected [{j},4,4]"),
+            (lambda: self.joint_rest_local.shape == (j, 4, 4),
+             f"joint_rest_local {self.joint_rest_local.shape}, expected [{j},4,4]"),
             (lambda: self.skin_weights.shape == (n, j), f"skin_weights {self.skin_weights.shape}, expected [{n},{j}]"),
             (lambda: np.allclose(self.skin_weights.sum(1), 1.0, atol=1e-4), "skin_weights rows must sum to 1"),
             (lambda: self.expression_deltas.shape == (len(self.expression_names), n, 3),
              f"expression_deltas {self.expression_deltas.shape}, expected [{len(self.expression_names)},{n},3]"),
-            (lambda: self.larynx_maps.ndim == 3 and len(self.larynx_maps) >= 1, f"larynx_maps {self.larynx_maps.shape}, expected [K,H,W]"),
-            (lambda: self.larynx_direction.shape == (3,), f"larynx_direction {self.larynx_direction.shape}, expected [3]"),
+            (lambda: self.larynx_maps.ndim == 3 and len(self.larynx_maps) >= 1,
+             f"larynx_maps {self.larynx_maps.shape}, expected [K,H,W]"),
+            (lambda: self.larynx_direction.shape == (3,),
+             f"larynx_direction {self.larynx_direction.shape}, expected [3]"),
             (lambda: self.pose_correctives.size == 0 or self.pose_correctives.shape == (j * 9, n * 3),
              f"pose_correctives {self.pose_correctives.shape}, expected [{j * 9},{n * 3}] or empty"),
             (lambda: self.shape_deltas.size == 0 or self.shape_deltas.shape[1:] == (n, 3),
@@ -116,7 +121,7 @@ class RigData:
         save_npz(path, **arrays)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "RigData":
+    def load(cls, path: str | os.PathLike) -> RigData:
         path = Path(path)
         if path.is_dir():
             raise InputError(
@@ -256,7 +261,8 @@ def convert(hack_dir: str | os.PathLike, ict_dir: str | os.PathLike, out: str | 
         raise InputError(f"{weights_path}: shape {weights.shape}, expected [{len(joint_names)},{n}]")
     totals = weights.sum(0)
     if (totals <= 0).any() or (weights < 0).any():
-        raise InputError(f"{weights_path}: negative weights or a vertex with no weight (vertex {int(np.argmin(totals))})")
+        raise InputError(f"{weights_path}: negative weights or a vertex with no weight "
+                         f"(vertex {int(np.argmin(totals))})")
     weights = (weights / totals).T
 
     larynx = read_larynx_map(model_dir / "Lc_mid.png")

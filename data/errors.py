@@ -13,11 +13,11 @@ class InputError(ValueError):
     """Bad user input.  The message names the file, the column or frame, and what was expected."""
 
 
-def require_file(path: str | os.PathLike, key: str | None = None) -> Path:
-    """``path`` as a Path; InputError ("<path>: file not found", with the config ``key`` that named it)
+def require_file(path: str | os.PathLike, what: str = "file", key: str | None = None) -> Path:
+    """``path`` as a Path; InputError ("<path>: <what> not found", with the config ``key`` that named it)
     when it is not an existing file."""
     path = Path(path)
     if not path.is_file():
         where = f"{key}={path}" if key else str(path)
-        raise InputError(f"{where}: file not found")
+        raise InputError(f"{where}: {what} not found")
     return path

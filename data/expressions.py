@@ -92,7 +92,7 @@ class ExpressionTrack:
     def __len__(self) -> int:
         return len(self.psi)
 
-    def resampled(self, fps: float) -> "ExpressionTrack":
+    def resampled(self, fps: float) -> ExpressionTrack:
         """The same recording linearly resampled to a uniform grid at ``fps``."""
         time, psi = resample_uniform(self.time, self.psi, fps)
         head = None if self.head_ypr is None else resample_uniform(self.time, self.head_ypr, fps)[1]

@@ -11,8 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import InputError
-
+from data.errors import InputError, require_file
 from data.files import atomic_path
 
 
@@ -42,9 +41,7 @@ def _numbers(lines: list[bytes], count: int, path: Path, tag: str) -> np.ndarray
 
 def read_obj(path: str | os.PathLike, vertices_only: bool = False) -> ObjMesh:
     """Read an OBJ: positions, faces (polygons kept if all have the same size), texture coordinates."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
+    path = require_file(path)
     lines = path.read_bytes().splitlines()
     vertices = _numbers([ln for ln in lines if ln.startswith(b"v ")], 3, path, "v")
     if len(vertices) == 0:

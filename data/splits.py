@@ -1,7 +1,7 @@
 """Training and validation splits by recording, never by frame."""
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

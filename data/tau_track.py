@@ -8,9 +8,9 @@ config key for it, ``fps_key``, in the error when it is missing).
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -38,7 +38,8 @@ class TauTrack:
         self.tau = np.asarray(self.tau, dtype=np.float64)
         self.time = np.asarray(self.time, dtype=np.float64)
         if self.tau.shape != self.time.shape or self.tau.ndim != 1:
-            raise ValueError(f"TauTrack {self.source}: tau {self.tau.shape} and time {self.time.shape} must be equal 1-D")
+            raise ValueError(f"TauTrack {self.source}: tau {self.tau.shape} and time {self.time.shape} must be "
+                             f"equal 1-D")
         if not self.fps > 0:
             raise ValueError(f"TauTrack {self.source}: fps must be positive, got {self.fps}")
 

@@ -53,7 +53,8 @@ def resample_uniform(time: np.ndarray, values: np.ndarray, fps: float, start: fl
     grid = start + np.arange(max(count, 0)) / fps
     flat = values.reshape(len(time), -1)
     out = np.stack([np.interp(grid, time, flat[:, k]) for k in range(flat.shape[1])], axis=1)
-    return grid, out.reshape((len(grid),) + values.shape[1:]).astype(values.dtype if values.dtype.kind == "f" else np.float64)
+    dtype = values.dtype if values.dtype.kind == "f" else np.float64
+    return grid, out.reshape((len(grid),) + values.shape[1:]).astype(dtype)
 
 
 def parse_timecode(codes: list[str], path: Path, rate: float | None = None,

@@ -9,12 +9,11 @@ tensors: checkpoints are read with ``torch.load(weights_only=True)``, which runs
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import torch
 from torch import nn
 
-from data.errors import InputError
+from data.errors import InputError, require_file
 from data.files import atomic_path
 from models import head2neck, larynx_transformer
 
@@ -32,9 +31,7 @@ def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: checkpoint not found")
+    path = require_file(path, "checkpoint")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for a corrupt file

@@ -9,12 +9,28 @@ A task module defines ``Task(cfg)`` with:
   task's baselines printed beside them when ``final``;
 - ``model_config() -> dict``: what ``build_model`` needs to rebuild the model;
 and a module function ``build_model(model_config) -> nn.Module``.
+
+Optional:
+- ``evaluate`` may return ``val_loss`` (lower is better): train.py then keeps ``checkpoints/best.pt``
+  and can stop early and evaluate the best weights (:class:`TrainerConfig`);
+- ``split_batch(batch, rank, world) -> batch``: this rank's share of the global batch under
+  ``torchrun``.  Without it train.py slices every tensor of the batch (a tensor, or tuples, lists and
+  dicts of them; other values are passed unchanged) on dim 0, which must be the batch dimension of
+  all of them (``train.split_batch``);
+- ``to(device)``: move the model and everything the task computes with (data tensors, the rig) to
+  ``device`` once, and from then on make the tensors it creates there (``batch`` may return tensors on
+  the CPU: train.py moves them).  Needed for ``trainer.device=cuda``.
+
+Under ``torchrun`` (world size W), ``loss`` runs on each rank's slice of the global batch with
+``self.model`` replaced by its ``DistributedDataParallel`` wrapper (attributes forwarded to the
+module), so the task must reach the model as ``self.model`` inside ``loss``; the loss must be a mean
+over the slice's samples, so that the ranks' averaged gradients are the gradient of the global batch.
 """
 from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass, field
-from typing import Any, Optional, Protocol
+from typing import Any, Protocol
 
 import torch
 from torch import nn
@@ -38,12 +54,37 @@ class OptimConfig:
     min_lr_factor: float = 0.02  # the rate at the end of the cosine, as a fraction of lr
 
 
+DEVICES = ("auto", "cpu", "cuda")
+
+
 @dataclass
 class TrainerConfig:
-    """How long, how often, and on what the loop runs (``train.fit``)."""
+    """How long, how often, and on what the loop runs (``train.fit``).
+
+    Devices and processes:
+    - ``device``: ``auto`` (CUDA when ``torch.cuda.is_available()``, else the CPU), ``cpu`` or ``cuda``
+      (refused where there is no GPU).  Under ``torchrun`` each rank takes the GPU of its
+      ``LOCAL_RANK``; the process group is NCCL on CUDA, gloo on the CPU.
+    - ``amp``: mixed precision on CUDA (float16 autocast around the loss, a gradient scaler whose state
+      is checkpointed); refused on the CPU.
+    - ``threads``: torch threads per process.
+
+    Validation, early stopping and the best checkpoint: validation runs every ``eval_every`` steps
+    (``task.evaluate()``, logged as ``val`` rows).  When it returns ``val_loss``, validation also runs
+    at the last step, ``checkpoints/best.pt`` (atomic; model, model_config, step, val_loss, config: it
+    loads like ``last.pt``) holds the weights of the lowest ``val_loss`` so far, and:
+    - ``early_stopping_patience``: stop after this many validations in a row without a lower
+      ``val_loss`` (null = never); ``last.pt`` then records the stop, and ``resume=true`` only
+      re-runs the final evaluation;
+    - ``restore_best``: run the final evaluation (``eval.json``) on the weights of ``best.pt`` rather
+      than the last ones (``eval.json`` gets ``best_step`` and ``best_val_loss``); ``last.pt`` keeps
+      the last weights.
+    Both need ``eval_every > 0`` and a task whose ``evaluate()`` returns ``val_loss`` (else InputError).
+    With either set, ``eval_every`` decides what is trained, so a resumed run may not change it.
+    """
 
     max_steps: int = 2000
-    stop_after: Optional[int] = None  # stop early (e.g. to test resume=true); the schedule still assumes max_steps
+    stop_after: int | None = None  # stop early (e.g. to test resume=true); the schedule still assumes max_steps
     log_every: int = 50
     eval_every: int = 500             # validation every this many steps (0 = only at the end)
     checkpoint_every: int = 500
@@ -52,6 +93,23 @@ class TrainerConfig:
     # stalls every parallel region (measured: 0.17 s/step on 1 thread, 0.9 s/step on 2).
     threads: int = 1
     progress: bool = True
+    device: str = "auto"              # auto | cpu | cuda
+    amp: bool = False                 # mixed precision (CUDA only)
+    early_stopping_patience: int | None = None  # validations without a lower val_loss before stopping
+    restore_best: bool = False        # final evaluation on checkpoints/best.pt's weights
+
+    def __post_init__(self):
+        if self.device not in DEVICES:
+            raise ValueError(f"device is '{self.device}', expected one of {', '.join(DEVICES)}")
+        if self.early_stopping_patience is not None and self.early_stopping_patience < 1:
+            raise ValueError(f"early_stopping_patience is {self.early_stopping_patience}, expected at least 1 "
+                             f"(or null: no early stopping)")
+        if (self.early_stopping_patience is not None or self.restore_best) and self.eval_every <= 0:
+            raise ValueError("early_stopping_patience and restore_best need validation during training: "
+                             f"eval_every is {self.eval_every}, expected > 0")
+        for name in ("max_steps", "log_every", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} is {getattr(self, name)}, expected at least 1")
 
 
 @dataclass
@@ -65,7 +123,7 @@ class TrainConfig:
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     seed: int = 0
     resume: bool = False
-    rig: Optional[str] = None  # rig file from python -m data.assets for tasks that need geometry; null = built-in
+    rig: str | None = None  # rig file from python -m data.assets for tasks that need geometry; null = built-in
 
 
 register_config("train_schema", TrainConfig)

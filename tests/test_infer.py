@@ -140,7 +140,8 @@ def test_folder_of_takes_in_two_workers_matches_one(tmp_path):
     infer(*common, f"out_dir={tmp_path / 'one'}")
     infer(*common, f"out_dir={tmp_path / 'two'}", "workers=2")
     for name in "abc":
-        one, two = load_params(tmp_path / "one" / name / "params.npz"), load_params(tmp_path / "two" / name / "params.npz")
+        one = load_params(tmp_path / "one" / name / "params.npz")
+        two = load_params(tmp_path / "two" / name / "params.npz")
         np.testing.assert_array_equal(one.psi, two.psi)
         np.testing.assert_array_equal(one.time, two.time)
 
