@@ -116,3 +116,25 @@ def test_ply_is_valid_binary(builtin_rig, tmp_path):
 def test_triangulate_fans_quads():
     quads = np.array([[0, 1, 2, 3], [4, 5, 6, 7]])
     np.testing.assert_array_equal(triangulate(quads), [[0, 1, 2], [4, 5, 6], [0, 2, 3], [4, 6, 7]])
+
+
+def test_assets_command_converts_and_reports(release, builtin_rig, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "rig.npz"
+    command = [sys.executable, "-m", "data.assets", f"hack_dir={release / 'HACK-Model'}",
+               f"ict_dir={release / 'ICT-FaceKit'}", f"out={out}"]
+    result = subprocess.run(command, cwd=repo, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert f"{builtin_rig.num_vertices} vertices" in result.stdout and "8 joints, 55 expressions" in result.stdout
+    assert HeadNeckModel.load(out).num_vertices == builtin_rig.num_vertices
+    missing = subprocess.run([sys.executable, "-m", "data.assets", f"out={out}"], cwd=repo, capture_output=True,
+                             text=True, timeout=300)
+    assert missing.returncode == 2 and missing.stderr.strip() == (
+        "error: missing hack_dir=..., ict_dir=... (see configs/assets.yaml)")
+    wrong = subprocess.run(command[:3] + [f"ict_dir={tmp_path / 'nowhere'}", "out_file=x"], cwd=repo,
+                           capture_output=True, text=True, timeout=300)
+    assert wrong.returncode == 2 and "Key 'out_file' not in 'AssetsCli'" in wrong.stderr
