@@ -21,9 +21,10 @@ HACK-named CSV, header-less 55-column CSV, or ``.npy`` with ``fps=``), resamples
 Everything goes into one folder, ``out_dir`` (default ``runs/infer/<time>/``), written whole or not at
 all (a staging folder renamed into place): ``params.npz`` (``data.params``: the file ``motion.retarget``
 and the exporters read), ``params.csv`` (a row per frame), ``plot.png`` (tau and eta with the swallows,
-the joints' anatomical angles), ``meshes/frame_00000.ply ...`` with ``meshes=true``, ``anim.glb`` and
-``preview.mp4`` with ``export=[glb,mp4]``.  A folder of takes gives one subfolder per take, a summary
-table (``summary.csv``) and goes on past a take that fails, naming its reason.
+the joints' anatomical angles), ``meshes/frame_00000.ply ...`` with ``meshes=true``, ``anim.glb``
+(``data.gltf``: Blender, Unity, three.js) and ``preview.mp4`` (``motion.preview``) with
+``export=[glb,mp4]``.  A folder of takes gives one subfolder per take, a summary table (``summary.csv``),
+and goes on past a take that fails, naming its reason.
 """
 from __future__ import annotations
 
@@ -49,6 +50,7 @@ from data.demo_take import SWALLOW_ONSET, demo_take
 from data.errors import InputError
 from data.expressions import EXPRESSION_NAMES, ExpressionTrack, arkit_name, read_expressions
 from data.files import write_csv
+from data.gltf import export_glb
 from data.mesh_io import write_obj, write_ply
 from data.params import AnimationParams, rig_checksum, save_params
 from data.plots import figure, save_figure
@@ -57,8 +59,8 @@ from models.head2neck import predict_theta
 from models.larynx_transformer import predict_tau
 from models.pretrained import default_checkpoint, read_manifest
 from models.rig import HeadNeckModel
-from models.rotations import axis_angle_to_euler
 from motion.head2neck import head_rotations_from_ypr, load_head2neck, recentered
+from motion.preview import Panel, anatomical_degrees, write_preview
 from motion.swallow import SwallowConfig, insert_swallows, read_template
 
 MESH_FORMATS = ("ply", "obj")
@@ -258,13 +260,6 @@ def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=p
     return params, seconds
 
 
-def anatomical_degrees(rig: HeadNeckModel, theta: np.ndarray) -> np.ndarray:
-    """theta [T,J,3] bone frames -> [T,J,3] degrees of (flexion, axial rotation, lateral bend) per joint."""
-    with torch.no_grad():
-        euler = axis_angle_to_euler(rig.to_anatomical(torch.as_tensor(theta, dtype=torch.float32)))
-    return np.degrees(euler.numpy())
-
-
 def write_params_csv(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
     """One row a frame: time, tau, eta, the 55 weights, and each joint's bone-frame axis-angle (rad)."""
     columns = {"frame": np.arange(len(params)), "time": params.time, "tau": params.tau, "eta": params.eta}
@@ -318,7 +313,7 @@ def write_meshes(folder: Path, rig: HeadNeckModel, params: AnimationParams, mesh
     return count
 
 
-def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, folder: Path) -> dict:
+def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, folder: Path, announce=print) -> dict:
     """Everything for one take into ``folder``; the seconds each output took."""
     seconds = {}
     started = time.perf_counter()
@@ -333,6 +328,16 @@ def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, fol
         started = time.perf_counter()
         write_meshes(folder / "meshes", models.rig, params, cfg.mesh_format)
         seconds["meshes"] = time.perf_counter() - started
+    if "glb" in cfg.export:
+        started = time.perf_counter()
+        report = export_glb(params, models.rig, folder / "anim.glb", check=False,
+                            source=str(params.producers["source"]))
+        announce(report.summary())
+        seconds["glb"] = time.perf_counter() - started
+    if "mp4" in cfg.export:
+        started = time.perf_counter()
+        write_preview(folder / "preview.mp4", [Panel.create(models.rig, params)])
+        seconds["mp4"] = time.perf_counter() - started
     return seconds
 
 
@@ -345,8 +350,12 @@ def staged_folder(out_dir: Path) -> Path:
 
 
 def commit_folder(staging: Path, out_dir: Path) -> None:
+    """Rename the finished staging folder to ``out_dir`` with a normal folder's mode (mkdtemp makes 0700)."""
     if out_dir.is_dir():
         out_dir.rmdir()  # empty (checked by staged_folder)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(staging, 0o777 & ~umask)
     os.replace(staging, out_dir)
 
 
@@ -360,7 +369,7 @@ def run_take(cfg: InferConfig, models: Models, path: str | None, out_dir: Path, 
     params, seconds = animate(cfg, models, track, announce)
     staging = staged_folder(out_dir)
     try:
-        seconds.update(write_outputs(cfg, models, params, staging))
+        seconds.update(write_outputs(cfg, models, params, staging, announce))
         commit_folder(staging, out_dir)
     finally:
         if staging.exists():

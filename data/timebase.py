@@ -49,7 +49,7 @@ def resample_uniform(time: np.ndarray, values: np.ndarray, fps: float, start: fl
     values = np.asarray(values)
     start = time[0] if start is None else start
     stop = time[-1] if stop is None else stop
-    count = int(np.floor((stop - start) * fps + 1e-9)) + 1
+    count = int(np.floor((stop - start) * fps + 1e-4)) + 1  # stamps printed to ~1e-9 s: within 1e-4 frame
     grid = start + np.arange(max(count, 0)) / fps
     flat = values.reshape(len(time), -1)
     out = np.stack([np.interp(grid, time, flat[:, k]) for k in range(flat.shape[1])], axis=1)

@@ -21,7 +21,7 @@ from data.files import write_csv
 from data.params import load_params, rig_checksum
 from data.synthetic_tau import swallow_profile
 from models.checkpoint import save_checkpoint
-from models.head2neck import build_model
+from models.head2neck import Head2NeckConfig, Head2NeckMLP, model_config
 from models.pretrained import read_manifest
 from models.rig import HeadNeckModel
 from motion.swallow import SwallowTemplate, write_template
@@ -40,8 +40,8 @@ def infer(*overrides):
 
 def untrained_head2neck(path: Path, rig) -> Path:
     """An untrained head2neck model: the range-of-motion split, made exact by the correction."""
-    config = {"hidden": [16, 16], "activation": "silu", "residual_scale": 0.1}
-    save_checkpoint(path, {"task": "head2neck", "model_config": config, "model": build_model(config).state_dict(),
+    model = Head2NeckMLP(Head2NeckConfig(hidden=[16, 16]))
+    save_checkpoint(path, {"task": "head2neck", "model_config": model_config(model), "model": model.state_dict(),
                            "step": 0})
     return path
 
@@ -235,3 +235,21 @@ def test_long_joined_recording_with_dropped_frames(tmp_path, livelinkface_sample
     params = load_params(out / "params.npz")
     assert row["status"] == "ok" and len(params) > 3500
     assert np.all(np.diff(params.time) > 0) and np.isfinite(params.tau).all()
+
+
+def test_exports_land_in_the_output_folder(tmp_path):
+    from pygltflib import GLTF2
+
+    turning_take(tmp_path / "take.csv", frames=20)
+    out = tmp_path / "out"
+    infer(f"expressions={tmp_path / 'take.csv'}", f"out_dir={out}", "checkpoint=none", "head2neck=none", "plot=false",
+          "export=[glb,mp4]")
+    gltf = GLTF2.load(str(out / "anim.glb"))
+    assert len(gltf.animations) == 1 and len(gltf.skins[0].joints) == 8
+    times = gltf.accessors[gltf.animations[0].samplers[0].input]
+    assert times.count == 20 and abs(times.max[0] - 19 / 30) < 1e-5
+    import cv2
+
+    video = cv2.VideoCapture(str(out / "preview.mp4"))
+    assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 20 and abs(video.get(cv2.CAP_PROP_FPS) - 30) < 1e-3
+    video.release()
