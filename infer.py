@@ -45,6 +45,7 @@ import torch
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
+from data.characters import GIRAFFE_TAG, load_character
 from data.cli import as_list, register_config, run_cli, to_dataclass
 from data.demo_take import SWALLOW_ONSET, demo_take
 from data.errors import InputError
@@ -52,7 +53,7 @@ from data.expressions import EXPRESSION_NAMES, ExpressionTrack, arkit_name, read
 from data.files import write_csv
 from data.gltf import export_glb
 from data.mesh_io import write_obj, write_ply
-from data.params import AnimationParams, rig_checksum, save_params
+from data.params import AnimationParams, load_params, rig_checksum, save_params
 from data.plots import figure, save_figure
 from models.checkpoint import load_model
 from models.head2neck import predict_theta
@@ -61,6 +62,7 @@ from models.pretrained import default_checkpoint, read_manifest
 from models.rig import HeadNeckModel
 from motion.head2neck import head_rotations_from_ypr, load_head2neck, recentered
 from motion.preview import Panel, anatomical_degrees, write_preview
+from motion.retarget import default_gains, retarget_params
 from motion.swallow import SwallowConfig, insert_swallows, read_template
 
 MESH_FORMATS = ("ply", "obj")
@@ -91,7 +93,7 @@ class InferConfig:
     allow_missing: bool = False        # run a capture that lacks some ARKit expression columns (left at 0)
     # expressions -> tau
     checkpoint: str = "default"        # larynx model: default (shipped) | none (the larynx rests) | a checkpoint
-    subject: str | None = None      # a training subject's style; null = the average style
+    subject: str | None = None         # a training subject's style; null = the average style
     eta: float = 1.0                   # larynx size
     # swallows
     swallow_template: str | None = None  # template CSV from python -m motion.swallow
@@ -107,7 +109,8 @@ class InferConfig:
     roll_sign: float = 1.0
     recenter: bool = False
     # rig and outputs
-    rig: str | None = None          # rig file from python -m data.assets; null = the built-in rig
+    rig: str | None = None             # rig file from python -m data.assets; null = the built-in rig
+    character: str = "human"           # human | giraffe (built from the rig) | a character file (.npz)
     meshes: bool = False               # one mesh per frame in meshes/
     mesh_format: str = "ply"           # ply | obj
     export: list[str] = field(default_factory=list)  # glb, mp4
@@ -144,6 +147,7 @@ class Models:
     larynx: torch.nn.Module | None = None
     neck: torch.nn.Module | None = None
     producers: dict = field(default_factory=dict)
+    character: HeadNeckModel | None = None  # the character the motion is retargeted onto (None: the rig's own)
 
 
 def _choice(value: str | None) -> str:
@@ -184,7 +188,11 @@ def load_models(cfg: InferConfig, announce=print) -> Models:
     else:
         neck, rig = None, HeadNeckModel.from_config(cfg.rig)
     rig_name = "builtin" if cfg.rig in (None, "", "builtin") else str(Path(cfg.rig).resolve())
-    return Models(rig, rig_name, larynx, neck, producers)
+    character = None
+    if cfg.character != "human":
+        character = HeadNeckModel(load_character(cfg.character, rig.rig))
+        announce(f"character: {cfg.character} ({character.num_vertices} vertices); the motion is retargeted onto it")
+    return Models(rig, rig_name, larynx, neck, producers, character)
 
 
 # ----------------------------------------------------------------------------- one take
@@ -314,29 +322,34 @@ def write_meshes(folder: Path, rig: HeadNeckModel, params: AnimationParams, mesh
 
 
 def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, folder: Path, announce=print) -> dict:
-    """Everything for one take into ``folder``; the seconds each output took."""
+    """Everything for one take into ``folder`` (``params`` drive the character when there is one); the
+    seconds each output took."""
+    rig = models.rig if models.character is None else models.character
     seconds = {}
     started = time.perf_counter()
     save_params(folder / "params.npz", params)
-    write_params_csv(folder / "params.csv", params, models.rig)
+    write_params_csv(folder / "params.csv", params, rig)
     seconds["write"] = time.perf_counter() - started
     if cfg.plot:
         started = time.perf_counter()
-        plot_take(folder / "plot.png", params, models.rig)
+        plot_take(folder / "plot.png", params, rig)
         seconds["plot"] = time.perf_counter() - started
     if cfg.meshes:
         started = time.perf_counter()
-        write_meshes(folder / "meshes", models.rig, params, cfg.mesh_format)
+        write_meshes(folder / "meshes", rig, params, cfg.mesh_format)
         seconds["meshes"] = time.perf_counter() - started
     if "glb" in cfg.export:
         started = time.perf_counter()
-        report = export_glb(params, models.rig, folder / "anim.glb", check=False,
+        report = export_glb(params, rig, folder / "anim.glb", check=False,
                             source=str(params.producers["source"]))
         announce(report.summary())
         seconds["glb"] = time.perf_counter() - started
     if "mp4" in cfg.export:
         started = time.perf_counter()
-        write_preview(folder / "preview.mp4", [Panel.create(models.rig, params)])
+        panels = [Panel.create(rig, params)]
+        if models.character is not None:  # side by side: the capture's own rig, then the character
+            panels.insert(0, Panel.create(models.rig, load_params(folder / "source_params.npz")))
+        write_preview(folder / "preview.mp4", panels)
         seconds["mp4"] = time.perf_counter() - started
     return seconds
 
@@ -369,6 +382,16 @@ def run_take(cfg: InferConfig, models: Models, path: str | None, out_dir: Path, 
     params, seconds = animate(cfg, models, track, announce)
     staging = staged_folder(out_dir)
     try:
+        if models.character is not None:
+            started = time.perf_counter()
+            save_params(staging / "source_params.npz", params)
+            label = str(cfg.character)
+            if cfg.character == GIRAFFE_TAG:  # built on the fly: the file beside the params names it
+                models.character.rig.save(staging / "character.npz")
+                label = str((out_dir / "character.npz").resolve())
+            params = retarget_params(params, models.rig, models.character, label, default_gains(models.character),
+                                     source_name=str(track.source))
+            seconds["retarget"] = time.perf_counter() - started
         seconds.update(write_outputs(cfg, models, params, staging, announce))
         commit_folder(staging, out_dir)
     finally:
