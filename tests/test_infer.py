@@ -253,3 +253,27 @@ def test_exports_land_in_the_output_folder(tmp_path):
     video = cv2.VideoCapture(str(out / "preview.mp4"))
     assert int(video.get(cv2.CAP_PROP_FRAME_COUNT)) == 20 and abs(video.get(cv2.CAP_PROP_FPS) - 30) < 1e-3
     video.release()
+
+
+def test_character_giraffe_gets_the_motion_at_its_base(tmp_path, builtin_rig):
+    """The giraffe's c7t1 (standing in for T1-T2) takes 3x the human flexion, the joints above 0.86x
+    (the gains motion.retarget documents); the giraffe's file sits beside its params."""
+    from data.assets import RigData
+    from models.rotations import axis_angle_to_euler
+
+    time = np.arange(30) / 30.0
+    write_csv(tmp_path / "nod.csv", {"time": time, "jawOpen": np.full(30, 0.2), "HeadYaw": np.zeros(30),
+                                     "HeadPitch": 0.3 * np.sin(np.pi * time), "HeadRoll": np.zeros(30)})
+    out = tmp_path / "out"
+    infer(f"expressions={tmp_path / 'nod.csv'}", f"out_dir={out}", "checkpoint=none", "plot=false",
+          f"head2neck={untrained_head2neck(tmp_path / 'h2n.pt', builtin_rig)}", "character=giraffe")
+    source, target = load_params(out / "source_params.npz"), load_params(out / "params.npz")
+    giraffe = HeadNeckModel(RigData.load(out / "character.npz"))
+    assert target.rig_checksum == rig_checksum(giraffe.rig) and giraffe.num_vertices == builtin_rig.num_vertices
+    with torch.no_grad():
+        human_flexion = axis_angle_to_euler(builtin_rig.to_anatomical(torch.tensor(source.theta)))[..., 0]
+        giraffe_flexion = axis_angle_to_euler(giraffe.to_anatomical(torch.tensor(target.theta)))[..., 0]
+    frame = 15  # the deepest nod
+    ratio = (giraffe_flexion[frame] / human_flexion[frame]).numpy()
+    np.testing.assert_allclose(ratio[0], 3.0, rtol=0.02)
+    np.testing.assert_allclose(ratio[1:], 0.86, rtol=0.02)
