@@ -35,7 +35,9 @@ the gradients, so the update is the one-process update of the same global
 batch (to float rounding; the tasks' losses are means over the batch).
 Rank 0 alone writes the checkpoints, metrics and progress bar, and runs the
 final evaluation; every rank validates during training (rank 0's result
-decides early stopping).  Rank ``r > 0`` seeds torch's global generator with
+decides early stopping).  The logged train metrics are the ranks' means (for
+a mean over the batch, such as the loss, the one-process value; for an RMS,
+the mean of the ranks' RMS).  Rank ``r > 0`` seeds torch's global generator with
 :func:`rank_seed` (its own draws, e.g. dropout masks: with dropout the
 ranks' masks differ from one process's, so equal weights need dropout 0).
 The world size is not part of the config: a run may be resumed with another
@@ -43,6 +45,7 @@ number of processes, continuing the same computation up to float rounding.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
@@ -185,6 +188,10 @@ def launched_ranks() -> Ranks:
     if dist.is_available() and dist.is_initialized():
         rank = dist.get_rank()
         return Ranks(rank, dist.get_world_size(), int(env.get("LOCAL_RANK", rank)))
+    if "WORLD_SIZE" not in env and int(env.get("SLURM_STEP_NUM_TASKS", 1)) > 1:
+        raise InputError(f"{env['SLURM_STEP_NUM_TASKS']} SLURM tasks run train.py without torchrun's environment "
+                         f"(RANK, WORLD_SIZE): each would train alone into the run directory; run one task per job "
+                         f"(hydra.launcher.tasks_per_node=1) or start the processes with torchrun")
     return Ranks(int(env.get("RANK", 0)), int(env.get("WORLD_SIZE", 1)), int(env.get("LOCAL_RANK", 0)))
 
 
@@ -312,21 +319,18 @@ class Validation:
     def __init__(self, patience: int | None, state: dict | None = None):
         self.patience = patience
         state = state or {}
-        self.tracking: bool | None = state.get("tracking")  # None until the first validation
         self.best: float = state.get("best", math.inf)
         self.best_step: int | None = state.get("best_step")
         self.since: int = state.get("since", 0)
         self.stopped: bool = state.get("stopped", False)
 
     def state(self) -> dict:
-        return {"tracking": self.tracking, "best": self.best, "best_step": self.best_step, "since": self.since,
-                "stopped": self.stopped}
+        return {"best": self.best, "best_step": self.best_step, "since": self.since, "stopped": self.stopped}
 
     def update(self, step: int, metrics: dict[str, float], needed: bool) -> bool:
         """Record the validation of ``step``; True when its ``val_loss`` is the lowest so far.  InputError
         when ``val_loss`` is absent but ``needed`` (early stopping or restore_best)."""
-        self.tracking = "val_loss" in metrics
-        if not self.tracking:
+        if "val_loss" not in metrics:
             if needed:
                 raise InputError(f"trainer.early_stopping_patience / trainer.restore_best need a val_loss from the "
                                  f"task's evaluation, which returned {', '.join(metrics) or 'nothing'}; unset them")
@@ -352,7 +356,10 @@ def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     ranks = launched_ranks()
     if trainer.threads:
         torch.set_num_threads(int(trainer.threads))
-    device = resolve_device(trainer.device, ranks.local_rank, hasattr(tasks.task_module(cfg.task.name).Task, "to"))
+    task_moves = hasattr(tasks.task_module(cfg.task.name).Task, "to")
+    device = resolve_device(trainer.device, ranks.local_rank, task_moves)
+    if trainer.device == "auto" and device.type == "cpu" and torch.cuda.is_available() and ranks.main:
+        print(f"note: task {cfg.task.name} cannot run on CUDA (its Task has no to(device)): training on the CPU")
     if trainer.amp and device.type != "cuda":
         raise InputError(f"trainer.amp=true: mixed precision runs on CUDA only, and this run is on the CPU "
                          f"(trainer.device={trainer.device}); set trainer.amp=false")
@@ -376,6 +383,9 @@ def _fit(cfg: DictConfig, trainer, run_dir: Path, ranks: Ranks, device: torch.de
     checkpoint_path = run_dir / "checkpoints" / "last.pt"
     best_path = run_dir / "checkpoints" / "best.pt"
     state = None
+    if not cfg.resume and checkpoint_path.exists():
+        raise InputError(f"{checkpoint_path}: this run directory already holds a run; resume=true continues it, "
+                         f"or choose another hydra.run.dir")
     if cfg.resume:
         if not checkpoint_path.exists():
             raise InputError(f"{checkpoint_path}: not found, so resume=true has nothing to continue; pass "
@@ -411,7 +421,7 @@ def _fit(cfg: DictConfig, trainer, run_dir: Path, ranks: Ranks, device: torch.de
     parallel = None
     if ranks.world > 1:
         parallel = TaskParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
-                                broadcast_buffers=False)  # the models' buffers are constants
+                                forward_sync_buffers=False)  # the models' buffers are constants
 
     def save(step: int) -> None:
         entries = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
@@ -431,6 +441,16 @@ def _fit(cfg: DictConfig, trainer, run_dir: Path, ranks: Ranks, device: torch.de
                     disable=not (trainer.progress and main), dynamic_ncols=True)
     running: dict[str, float] = {}
     count = 0
+
+    def log_train(done: int) -> None:
+        """Log the mean of the train metrics since the last log (over the steps and the ranks)."""
+        nonlocal running, count
+        averaged = mean_over_ranks({k: v / count for k, v in running.items()}, ranks, device)
+        if main:
+            log.log(done, "train", {**averaged, "lr": scheduler.get_last_lr()[0]})
+            progress.set_postfix({k: f"{v:.4g}" for k, v in list(averaged.items())[:3]})
+        running, count = {}, 0
+
     started = time.perf_counter()
     for step in progress:
         global_seed, batch_seed = step_seeds(int(cfg.seed), step)
@@ -462,23 +482,23 @@ def _fit(cfg: DictConfig, trainer, run_dir: Path, ranks: Ranks, device: torch.de
         count += 1
         done = step + 1
         if done % trainer.log_every == 0 or done == stop:
-            averaged = mean_over_ranks({k: v / count for k, v in running.items()}, ranks, device)
-            if main:
-                log.log(done, "train", {**averaged, "lr": scheduler.get_last_lr()[0]})
-                progress.set_postfix({k: f"{v:.4g}" for k, v in list(averaged.items())[:3]})
-            running, count = {}, 0
-        last = done == trainer.max_steps  # the final evaluation follows; validate too when it selects weights
-        if trainer.eval_every and ((done % trainer.eval_every == 0 and not last) or (last and validation.tracking)):
+            log_train(done)
+        # At the last step the final evaluation follows; validate there too only to choose between the last
+        # and the best weights (restore_best).
+        last = done == trainer.max_steps
+        if trainer.restore_best if last else bool(trainer.eval_every) and done % trainer.eval_every == 0:
             model.eval()
             with torch.no_grad():
-                metrics = task.evaluate()
-            improved = validation.update(done, metrics, selecting)
+                scores = task.evaluate()
+            improved = validation.update(done, scores, selecting)
             if main:
-                log.log(done, "val", metrics)
+                log.log(done, "val", scores)
                 if improved:
                     save_checkpoint(best_path, {**weights(done), "val_loss": validation.best})
             if from_rank0(validation.patience_spent(), ranks) and not last:
                 validation.stopped, stop = True, done
+                if count:
+                    log_train(done)
                 if main:
                     print(f"early stopping after step {done}: val_loss has not fallen below {validation.best:.6g} "
                           f"(step {validation.best_step}) in {validation.since} validations")
@@ -493,20 +513,21 @@ def _fit(cfg: DictConfig, trainer, run_dir: Path, ranks: Ranks, device: torch.de
         return {}
     if not main:
         return {}
-    extra = {}
-    if validation.tracking:
-        extra = {"best_step": float(validation.best_step), "best_val_loss": validation.best}
-        if trainer.restore_best and validation.best_step != stop:
-            best = load_checkpoint(best_path)
-            if best.get("step") != validation.best_step:
-                raise InputError(f"{best_path}: holds the weights of step {best.get('step')}, but the run's lowest "
-                                 f"val_loss is step {validation.best_step}'s; resume the run from its last.pt")
-            load_state(model, best["model"], best_path, "model")
+    restored = trainer.restore_best and validation.best_step is not None and validation.best_step != stop
+    if restored:
+        best = load_checkpoint(best_path)
+        if best.get("step") != validation.best_step:
+            raise InputError(f"{best_path}: holds the weights of step {best.get('step')}, but the run's lowest "
+                             f"val_loss is step {validation.best_step}'s; resume the run from its last.pt")
+        load_state(model, best["model"], best_path, "model")
     model.eval()
     with torch.no_grad():
         final = task.evaluate(final=True)
     final = {k: float(v) for k, v in final.items()}
-    final.update(extra)
+    if not restored and validation.update(stop, final, False):  # the last weights are a candidate too
+        save_checkpoint(best_path, {**weights(stop), "val_loss": validation.best})
+    if validation.best_step is not None:
+        final.update(best_step=float(validation.best_step), best_val_loss=validation.best)
     final["train_seconds"] = elapsed
     log.log(stop, "final", final)
     write_text(run_dir / "eval.json", json.dumps(final, indent=2) + "\n")
@@ -531,6 +552,10 @@ def check_command_line(argv: list[str]) -> None:
         print("error: -m (a hydra sweep) under torchrun: run one torchrun per sweep job, or sweep with the "
               "submitit launcher (hydra/launcher=slurm)", file=sys.stderr)
         sys.exit(2)
+    if "hydra/launcher=slurm" in argv and not has_module("hydra_plugins.hydra_submitit_launcher"):
+        print("error: hydra/launcher=slurm needs the hydra submitit launcher: pip install \".[slurm]\"",
+              file=sys.stderr)
+        sys.exit(2)
     if any(arg.startswith("-") for arg in argv):
         return
     try:
@@ -539,6 +564,14 @@ def check_command_line(argv: list[str]) -> None:
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
+
+
+def has_module(name: str) -> bool:
+    """Whether ``name`` is installed (without importing it)."""
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ModuleNotFoundError:  # its parent package is absent
+        return False
 
 
 def rank_arguments(argv: list[str]) -> list[str]:

@@ -70,15 +70,16 @@ class TrainerConfig:
     - ``threads``: torch threads per process.
 
     Validation, early stopping and the best checkpoint: validation runs every ``eval_every`` steps
-    (``task.evaluate()``, logged as ``val`` rows).  When it returns ``val_loss``, validation also runs
-    at the last step, ``checkpoints/best.pt`` (atomic; model, model_config, step, val_loss, config: it
-    loads like ``last.pt``) holds the weights of the lowest ``val_loss`` so far, and:
+    (``task.evaluate()``, logged as ``val`` rows) except at the last step, which the final evaluation
+    scores.  When the evaluation returns ``val_loss``, ``checkpoints/best.pt`` (atomic; model,
+    model_config, step, val_loss, config: it loads like ``last.pt``) holds the weights of the lowest
+    ``val_loss`` among the validations and the final evaluation, ``eval.json`` gets ``best_step`` and
+    ``best_val_loss``, and:
     - ``early_stopping_patience``: stop after this many validations in a row without a lower
       ``val_loss`` (null = never); ``last.pt`` then records the stop, and ``resume=true`` only
       re-runs the final evaluation;
-    - ``restore_best``: run the final evaluation (``eval.json``) on the weights of ``best.pt`` rather
-      than the last ones (``eval.json`` gets ``best_step`` and ``best_val_loss``); ``last.pt`` keeps
-      the last weights.
+    - ``restore_best``: validate at the last step too, and run the final evaluation (``eval.json``) on
+      the weights of ``best.pt`` rather than the last ones; ``last.pt`` keeps the last weights.
     Both need ``eval_every > 0`` and a task whose ``evaluate()`` returns ``val_loss`` (else InputError).
     With either set, ``eval_every`` decides what is trained, so a resumed run may not change it.
     """

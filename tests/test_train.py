@@ -12,6 +12,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+import tasks
 import train
 from data.errors import InputError
 from models.checkpoint import load_checkpoint, load_model, save_checkpoint
@@ -20,13 +21,16 @@ REPO = Path(__file__).resolve().parents[1]
 MAX_STEPS = 6
 
 
+# A tiny head2neck run (a few steps on a few synthetic sequences), also used by test_distributed.py.
+TINY = ["task=head2neck", "model.hidden=[16]", "data.train_sequences=8", "data.val_sequences=2",
+        "data.prior.seconds=1.0", "task.batch_size=64", f"trainer.max_steps={MAX_STEPS}", "trainer.eval_every=0",
+        "trainer.log_every=1", "trainer.checkpoint_every=2", "trainer.progress=false", "trainer.threads=1",
+        "optim.warmup_steps=2"]
+
+
 def config(*overrides):
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base=None):
-        return compose("train", overrides=[
-            "task=head2neck", "model.hidden=[16]", "data.train_sequences=8", "data.val_sequences=2",
-            "data.seconds=1.0", "task.batch_size=64", f"trainer.max_steps={MAX_STEPS}", "trainer.eval_every=0",
-            "trainer.log_every=1", "trainer.checkpoint_every=2", "trainer.progress=false", "trainer.threads=1",
-            "optim.warmup_steps=2", *overrides])
+        return compose("train", overrides=[*TINY, *overrides])
 
 
 def rows(run_dir: Path) -> list[dict]:
@@ -57,7 +61,8 @@ def test_resume_refuses_another_config_and_accepts_other_run_control(tmp_path, r
         train.fit(config("resume=true", "optim.lr=0.01"), run_dir)
     with pytest.raises(InputError, match=r"data\.seed: 1 -> 5; model\.hidden: \[16\] -> \[32\]"):
         train.fit(config("resume=true", "data.seed=5", "model.hidden=[32]"), run_dir)
-    with pytest.raises(InputError, match="checkpoint of task 'head2neck', but resume=true runs task 'larynx_transformer'"):
+    with pytest.raises(InputError,
+                       match="checkpoint of task 'head2neck', but resume=true runs task 'larynx_transformer'"):
         train.fit(compose_larynx("resume=true"), run_dir)
     # stop_after and log_every differ from the first part: allowed, and the weights are the uninterrupted run's
     train.fit(config("resume=true", "trainer.log_every=2"), run_dir)
@@ -147,3 +152,220 @@ def test_cli_refused_resume_is_an_error_with_status_2(tmp_path):
                              "trainer.progress=false"], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert result.returncode == 2, result.stderr
     assert result.stderr.startswith("error: ") and "last.pt" in result.stderr and "Traceback" not in result.stderr
+
+
+# --------------------------------------------------------------------------- the loop's arithmetic
+
+
+def test_single_process_run_is_the_documented_loop(tmp_path, monkeypatch):
+    """train.fit on one process (with the distributed, device and AMP code in place) gives bit-identical weights
+    to the loop of train.py's docstring written out here: seed, build, then per step the two step seeds, the
+    batch, AdamW with the warm-up/cosine factor, clipping.  The loss draws from torch's global generator (as
+    dropout would), so its seeding counts too."""
+    from tasks.head2neck import Task
+
+    original = Task.loss
+    monkeypatch.setattr(Task, "loss", lambda self, batch, step: (lambda l, m: (l * (1 + torch.rand(())), m))(
+        *original(self, batch, step)))
+    cfg = config("trainer.grad_clip=0.002", "trainer.eval_every=3")
+    train.fit(cfg, tmp_path / "run")
+    torch.manual_seed(cfg.seed)
+    task = tasks.build(cfg)
+    model = task.model
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.optim.lr, betas=tuple(cfg.optim.betas),
+                                  weight_decay=cfg.optim.weight_decay)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: train.lr_factor(
+        s, cfg.optim.warmup_steps, MAX_STEPS, cfg.optim.min_lr_factor))
+    clipped = 0
+    for step in range(MAX_STEPS):
+        global_seed, batch_seed = train.step_seeds(cfg.seed, step)
+        torch.manual_seed(global_seed)
+        batch = task.batch(step, torch.Generator().manual_seed(batch_seed))
+        model.train()
+        loss, _ = task.loss(batch, step)
+        optimizer.zero_grad()
+        loss.backward()
+        clipped += float(torch.nn.utils.clip_grad_norm_(model.parameters(), 0.002)) > 0.002
+        optimizer.step()
+        scheduler.step()
+    assert clipped == MAX_STEPS  # the clipping path is exercised
+    trained = weights(tmp_path / "run")
+    assert all(torch.equal(trained[k], v) for k, v in model.state_dict().items())
+
+
+def optimiser_steps(monkeypatch) -> list[dict]:
+    """Record, at every AdamW step, the learning rate it applies and the norm of the gradient it steps with."""
+    records = []
+    step = torch.optim.AdamW.step
+
+    def recording(self, *args, **kwargs):
+        grads = [p.grad for group in self.param_groups for p in group["params"] if p.grad is not None]
+        records.append({"lr": self.param_groups[0]["lr"],
+                        "grad_norm": float(torch.linalg.vector_norm(torch.stack([g.norm() for g in grads])))})
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.AdamW, "step", recording)
+    return records
+
+
+def test_warm_up_rises_linearly_to_the_learning_rate(tmp_path, monkeypatch):
+    """Steps 0..W-1 apply lr (s+1)/W, step W the full lr (the cosine's start); the first update moves no
+    weight by more than lr/W (Adam's first step is lr * g/|g| per weight), and the largest by that much."""
+    warmup, lr = 4, 0.01
+    cfg = config(f"optim.warmup_steps={warmup}", f"optim.lr={lr}", "optim.weight_decay=0.0")
+    torch.manual_seed(cfg.seed)
+    initial = {k: v.clone() for k, v in tasks.build(cfg).model.state_dict().items()}
+    records = optimiser_steps(monkeypatch)
+    train.fit(cfg, tmp_path / "all")
+    expected = [lr * (s + 1) / warmup for s in range(warmup)] + [lr]
+    assert [r["lr"] for r in records[:warmup + 1]] == pytest.approx(expected, rel=1e-12)
+    assert records[warmup + 1]["lr"] < lr  # then the cosine decays
+    train.fit(config(f"optim.warmup_steps={warmup}", f"optim.lr={lr}", "trainer.stop_after=1"), tmp_path / "one")
+    moved = max(float((weights(tmp_path / "one")[k] - v).abs().max()) for k, v in initial.items())
+    assert moved == pytest.approx(lr / warmup, rel=1e-3)
+
+
+def test_gradient_clipping_bounds_the_gradient_of_a_huge_loss(tmp_path, monkeypatch):
+    """A loss scaled by 1e6: with grad_clip=1 every step's gradient norm is 1 (the clip), without it millions."""
+    from tasks.head2neck import Task
+
+    original = Task.loss
+    monkeypatch.setattr(Task, "loss", lambda self, batch, step: (lambda l, m: (l * 1e6, m))(
+        *original(self, batch, step)))
+    records = optimiser_steps(monkeypatch)
+    train.fit(config("trainer.grad_clip=1.0"), tmp_path / "clipped")
+    clipped = [r["grad_norm"] for r in records]
+    records.clear()
+    train.fit(config("trainer.grad_clip=0"), tmp_path / "free")
+    free = [r["grad_norm"] for r in records]
+    assert len(clipped) == len(free) == MAX_STEPS
+    assert clipped == pytest.approx([1.0] * MAX_STEPS, rel=1e-5)
+    assert min(free) > 1e3
+
+
+# --------------------------------------------------------------------------- validation during training
+
+
+def test_validation_during_training_scores_that_step_and_survives_an_interruption_there(tmp_path):
+    """Validation rows at every eval_every step but the last (the final evaluation covers it) hold the task's
+    evaluation of that step's weights; a run stopped at a validation step and resumed logs exactly the rows
+    and trains exactly the weights of the uninterrupted run."""
+    whole = tmp_path / "whole"
+    train.fit(config("trainer.eval_every=2"), whole)
+    assert sorted({int(r["step"]) for r in rows(whole) if r["split"] == "val"}) == [2, 4]
+    part = tmp_path / "part"
+    train.fit(config("trainer.eval_every=2", "trainer.stop_after=4"), part)
+    model, _ = load_model(part / "checkpoints" / "last.pt")
+    cfg = config("trainer.eval_every=2")
+    torch.manual_seed(cfg.seed)
+    task = tasks.build(cfg)
+    task.model.load_state_dict(model.state_dict())
+    task.model.eval()
+    expected = task.evaluate()
+    logged = {r["name"]: float(r["value"]) for r in rows(part) if r["split"] == "val" and r["step"] == "4"}
+    assert logged.keys() == expected.keys()
+    assert all(logged[k] == pytest.approx(expected[k], rel=1e-5, abs=1e-9) for k in expected)
+    train.fit(config("trainer.eval_every=2", "resume=true"), part)
+    assert [r for r in rows(part) if r["name"] != "train_seconds"] == \
+        [r for r in rows(whole) if r["name"] != "train_seconds"]
+    assert all(torch.equal(weights(part)[k], v) for k, v in weights(whole).items())
+
+
+def test_resuming_a_finished_run_replaces_its_final_rows(tmp_path):
+    run_dir = tmp_path / "run"
+    train.fit(config(), run_dir)
+    before = [r for r in rows(run_dir) if r["name"] != "train_seconds"]
+    assert sum(r["split"] == "final" for r in before) > 0
+    train.fit(config("resume=true"), run_dir)
+    assert [r for r in rows(run_dir) if r["name"] != "train_seconds"] == before
+
+
+def test_a_new_run_in_the_folder_of_another_is_refused(tmp_path):
+    train.fit(config("trainer.stop_after=2"), tmp_path / "run")
+    with pytest.raises(InputError, match=r"last\.pt: this run directory already holds a run; resume=true continues"):
+        train.fit(config(), tmp_path / "run")
+
+
+# --------------------------------------------------------------------------- early stopping, best weights
+
+
+def distance_to(target: dict):
+    """A task evaluate() whose val_loss is the squared distance of the model's weights to ``target``."""
+    def evaluate(self, final: bool = False) -> dict[str, float]:
+        state = self.model.state_dict()
+        return {"val_loss": sum(float(((state[k].double() - v.double()) ** 2).sum()) for k, v in target.items())}
+    return evaluate
+
+
+def test_early_stopping_keeps_the_best_weights_and_evaluates_them(tmp_path, monkeypatch):
+    """val_loss = distance to the weights after step 2: lowest (0) at step 2, so with patience 2 and a
+    validation per step the run stops after step 4, best.pt holds step 2's weights, and the final evaluation
+    (restore_best) scores them; an interruption between the best and the stop changes none of it, and a
+    resumed early-stopped run trains no further."""
+    from tasks.head2neck import Task
+
+    train.fit(config("trainer.stop_after=2"), tmp_path / "two")
+    at_two = weights(tmp_path / "two")
+    monkeypatch.setattr(Task, "evaluate", distance_to(at_two))
+    settings = ("trainer.eval_every=1", "trainer.early_stopping_patience=2", "trainer.restore_best=true",
+                "trainer.checkpoint_every=3")  # the stop (step 4) is saved although no checkpoint is due
+    run_dir = tmp_path / "run"
+    final = train.fit(config(*settings), run_dir)
+    assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["step"] == 4
+    assert max(int(r["step"]) for r in rows(run_dir) if r["split"] != "final") == 4
+    best = load_checkpoint(run_dir / "checkpoints" / "best.pt")
+    assert best["step"] == 2 and best["val_loss"] == 0.0
+    assert all(torch.equal(best["model"][k], v) for k, v in at_two.items())
+    assert not all(torch.equal(weights(run_dir)[k], v) for k, v in at_two.items())  # last.pt: the last weights
+    assert final["val_loss"] == 0.0 and final["best_step"] == 2.0 and final["best_val_loss"] == 0.0
+    load_model(run_dir / "checkpoints" / "best.pt", task="head2neck")  # loads like last.pt
+
+    interrupted = tmp_path / "interrupted"
+    train.fit(config(*settings, "trainer.stop_after=3"), interrupted)
+    resumed = train.fit(config(*settings, "resume=true"), interrupted)
+    assert {k: v for k, v in resumed.items() if k != "train_seconds"} == \
+        {k: v for k, v in final.items() if k != "train_seconds"}
+    assert all(torch.equal(weights(interrupted)[k], v) for k, v in weights(run_dir).items())
+    again = train.fit(config(*settings, "resume=true"), run_dir)
+    assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["step"] == 4 and again["val_loss"] == 0.0
+    with pytest.raises(InputError, match=r"only resume, trainer\.stop_after.*trainer\.log_every, "
+                                         r"trainer\.checkpoint_every"):
+        train.fit(config(*settings, "resume=true", "trainer.eval_every=2"), run_dir)  # it chose the weights
+
+
+def test_without_restore_best_the_final_evaluation_scores_the_last_weights(tmp_path, monkeypatch):
+    from tasks.head2neck import Task
+
+    train.fit(config("trainer.stop_after=2"), tmp_path / "two")
+    monkeypatch.setattr(Task, "evaluate", distance_to(weights(tmp_path / "two")))
+    final = train.fit(config("trainer.eval_every=1"), tmp_path / "run")
+    assert final["val_loss"] > 0 and final["best_step"] == 2.0  # trained to the end: no patience
+    assert load_checkpoint(tmp_path / "run" / "checkpoints" / "best.pt")["step"] == 2
+    # the last step is scored by the final evaluation alone
+    assert {int(r["step"]) for r in rows(tmp_path / "run") if r["split"] == "val"} == set(range(1, MAX_STEPS))
+
+
+def test_the_final_evaluation_counts_for_the_best_weights(tmp_path, monkeypatch):
+    """val_loss = distance to the last weights: the validations never reach 0, the final evaluation does, so
+    best.pt holds the last weights (written at the end)."""
+    from tasks.head2neck import Task
+
+    train.fit(config(), tmp_path / "whole")
+    monkeypatch.setattr(Task, "evaluate", distance_to(weights(tmp_path / "whole")))
+    final = train.fit(config("trainer.eval_every=2"), tmp_path / "run")
+    best = load_checkpoint(tmp_path / "run" / "checkpoints" / "best.pt")
+    assert best["step"] == MAX_STEPS and best["val_loss"] == 0.0 and final["best_step"] == MAX_STEPS
+    assert min(float(r["value"]) for r in rows(tmp_path / "run") if r["name"] == "val_loss" and r["split"] == "val") > 0
+    # restore_best validates the last step too: the last weights are the best, and stay
+    final = train.fit(config("trainer.eval_every=2", "trainer.restore_best=true"), tmp_path / "restoring")
+    assert final["best_step"] == MAX_STEPS and final["val_loss"] == 0.0
+
+
+def test_early_stopping_needs_a_val_loss_and_validation(tmp_path):
+    with pytest.raises(InputError, match=r"need a val_loss from the task's evaluation, which returned joint_err_deg"):
+        train.fit(config("trainer.eval_every=2", "trainer.early_stopping_patience=2"), tmp_path / "a")
+    with pytest.raises(InputError, match=r"trainer: early_stopping_patience and restore_best need validation during "
+                                         r"training: eval_every is 0"):
+        train.fit(config("trainer.restore_best=true"), tmp_path / "b")
+    with pytest.raises(InputError, match=r"trainer: early_stopping_patience is 0, expected at least 1"):
+        train.fit(config("trainer.eval_every=1", "trainer.early_stopping_patience=0"), tmp_path / "c")
