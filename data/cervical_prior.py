@@ -1,164 +1,256 @@
-"""Anatomical prior of cervical motion: seeded synthetic theta sequences, and the loader of real ones.
+"""Prior of cervical motion built on measured in-vivo kinematics: seeded synthetic theta sequences, and the
+loader of real ones.
 
-HACK drives its 8 cervical joints from one head orientation with a learned
-mapping; without motion capture we learn it from this generator, whose
-segmental statistics follow the published ranges of motion
-(``models.joint_limits.RANGES_DEG``, the single source of the per-level
-ranges) plus the facts and assumptions listed below.  Angles are Euler angles
-per joint in its anatomical frame (``HeadNeckModel.to_anatomical``; the rig
-takes ``rig.from_anatomical(theta)``) (``models.rotations``: ``R = Rz(az) Ry(ay) Rx(ax)``;
-``ax`` flexion +, ``ay`` axial rotation + to the subject's left, ``az`` lateral
-bending + to the subject's right), joints root to head (``JOINT_LEVELS``).
-Head orientation follows by forward kinematics (``HeadNeckModel.head_rotation``).
+HACK drives its 8 cervical joints from one head orientation; without motion capture of the spine we learn
+that mapping from this generator.  Angles are Euler angles per joint in its anatomical frame
+(``HeadNeckModel.to_anatomical``; the rig takes ``rig.from_anatomical(theta)``), ``R = Rz(az) Ry(ay) Rx(ax)``
+(``models.rotations``): ``ax`` flexion +, ``ay`` axial rotation + to the subject's left, ``az`` lateral bending
++ to the subject's right; joints root to head (``models.joint_limits.JOINT_LEVELS``: C7-T1 ... O-C1).  Head
+orientation follows by forward kinematics (``HeadNeckModel.head_rotation``).
+
+Sources (each constant below names the one it comes from; "assumption" where the literature gave us none):
+
+- [Z21] "In vivo primary and coupled segmental motions of the healthy female head-neck complex during dynamic
+  head axial rotation", J Biomech 2021: dual fluoroscopy of C0-T1, 8 asymptomatic women, upright, dynamic.
+  One-sided rotation 55.5 +- 10.8 deg; C0-C2 39.7 +- 9.6 deg (71.3 +- 8.5 %), C2-T1 10.0 +- 3.7 deg
+  (18.6 +- 7.2 %); coupled bending upper contralateral 18.2 +- 5.9 deg, lower ipsilateral 21.4 +- 5.1 deg.
+- [I04a] Ishii et al., "Kinematics of the upper cervical spine in rotation: in vivo three-dimensional
+  analysis", Spine 29(7):E139-E144, 2004 (MRI, 15 volunteers, 15 deg steps): axial O-C1 1.7 +- 1.5, C1-C2
+  36.2 +- 4.5 deg; C1-C2's increments shrink as the head turns further; coupled contralateral bending O-C1
+  4.1, C1-C2 3.8 deg; coupled extension O-C1 13.3, C1-C2 6.9 deg (supine, at maximal rotation).
+- [I04b] Ishii et al., "Kinematics of the subaxial cervical spine in rotation in vivo three-dimensional
+  analysis", Spine 29(24):2826-2831, 2004: at maximal head rotation (69.5 deg) axial C2-C3 2.2, C3-C4 4.5,
+  C4-C5 4.6, C5-C6 4.0, C6-C7 1.6, C7-T1 1.5 deg, coupled bending to the same side at every level.
+- [S13] Salem et al., "In vivo three-dimensional kinematics of the cervical spine during maximal axial
+  rotation", Man Ther 18(4):339-344, 2013 (CT, 20 volunteers): axial O-C1 2.5, C1-C2 37.5 deg, coupled
+  contralateral bending O-C1 5.0, C1-C2 2.5 deg, extension O-C1 12.0, C1-C2 4.0 deg; coupled extension at
+  C2-C3..C4-C5 and flexion at C5-C6, C6-C7.
+- [W10] Wu, Kuo, Lan, Tsai, Su, "Segmental percentage contributions of cervical spine during different motion
+  ranges of flexion and extension" (videofluoroscopy, 48 healthy adults; shares of C2-C7 motion): flexion's
+  first third C3/4 29.89 %, C4/5 37.14 %, its middle to final thirds C5/6 22.57-29.45 %, C6/7 28.80-37.42 %;
+  extension starts at C5/6 (30.21 %) and ends at C3/4 (27.55 %) and C4/5 (29.77 %).
+- [A13] Anderst et al., Spine 2013 (PMC3686971; biplane radiography at 30 images/s, 18 asymptomatic
+  subjects): C2/C3-C4/C5 contribute most in mid-range flexion-extension, C5/C6 and C6/C7 near its ends.
+- [L14] Lan et al., "The shift of segmental contribution ratio in patients with herniated disc during cervical
+  lateral bending", BMC Musculoskelet Disord 15:273, 2014: healthy C2/3..C6/7 lateral bending 7.66 +- 2.37,
+  8.37 +- 2.11, 8.91 +- 3.22, 7.19 +- 2.29, 6.31 +- 2.11 deg.
+- [WP90] / [P88]: the published segmental ranges of ``models.joint_limits.RANGES_DEG`` (White & Panjabi 1990;
+  Panjabi et al. 1988), the rig's joint limits.
+- [C06] Cook et al., J Manipulative Physiol Ther 29:570-575, 2006 (systematic review): below C2, bending and
+  rotation couple to the same side in every 3D study; the upper cervical coupling direction varies.
+- [BM00] Bogduk & Mercer, Clin Biomech 15:633-648, 2000 (review): nodding starts at the craniocervical junction.
+- [FH85] Flash & Hogan, J Neurosci 5:1688-1703, 1985: minimum-jerk movements.
 
 Generating process
 ------------------
-1. A *person*: each level's four ranges (flexion, extension, lateral bending,
-   axial rotation) are the published ones times a factor ``s ~ clip(LogNormal(
-   log 0.85, 0.2), 0.5, 1)`` drawn per level and motion.  The published values
-   are treated as the envelope (they are the rig's joint limits), so a person
-   moves inside them.  Spread: healthy segmental lateral bending C2/3-C6/7
-   7.7 +- 2.4, 8.4 +- 2.1, 8.9 +- 3.2, 7.2 +- 2.3, 6.3 +- 2.1 degrees, i.e. a
-   coefficient of variation of 0.25-0.36 (Lan et al., BMC Musculoskelet Disord
-   15:273, 2014, "The shift of segmental contribution ratio in patients with
-   herniated disc during cervical lateral bending"); we take sigma = 0.2 in log
-   (assumption, part of that spread is measurement error).  Recruitment and
-   coupling parameters vary per person too (below).
-2. Three smooth *drives* per sequence in [-1, 1]: sagittal (+ flexion), axial
-   (+ to the left) and lateral (+ to the right), the fraction of the person's
-   range the head movement asks for: nods (sagittal oscillation 0.8-2 Hz),
-   turns, tilts, and combinations, built from minimum-jerk transitions between
-   held targets (Flash & Hogan, J Neurosci 5:1688-1703, 1985) and smoothly
-   enveloped oscillations, sampled at an explicit ``fps``.
-3. *Recruitment*: level j moves ``range_j * u(|d|; k_j) * sign(d)`` for drive
-   d, with ``u(m; k) = (1 - exp(-k m)) / (1 - exp(-k))`` (``u = m`` at k = 0):
-   k > 0 recruits the level early (concave), k < 0 late (convex); every level
-   reaches its full range at |d| = 1, so at full drive the split is the
-   published range-of-motion split, and it departs from it in between.
-   - Axial rotation: C1-C2 early (k = 2): "increases in angle of axial rotation
-     in C1-C2 became smaller with increased head rotation" (Ishii et al.,
-     Spine 29(7):E139-E144, 2004, in vivo 3D MRI); subaxial levels late
-     (k = -1.5, assumption consistent with it), O-C1 linear.
-   - Flexion/extension: O-C1 early (k = 2) and C1-C2 (k = 1): small nods are
-     craniocervical ("yes" nodding happens at the atlanto-occipital joint;
-     Bogduk & Mercer, Clin Biomech 15:633-648, 2000, review); C5-C6..C7-T1
-     late (k = -1).  The k values are our assumption; the literature on the
-     order of subaxial sagittal recruitment is not consistent (ibid.).
-   - Lateral bending: mostly C2-C7 (their share of the published range is
-     already 88%); O-C1 and C1-C2 recruited late (k = -1.5, assumption).
-   Per person k += N(0, 0.3).
-4. *Coupling* (added to the primary angles, each level's coupled angle in
-   proportion to its driver):
-   - C2-C3..C7-T1: axial rotation and lateral bending couple to the same side
-     (100% agreement of 3D studies below C2: Cook et al., J Manipulative
-     Physiol Ther 29:570-575, 2006, systematic review).  Rotation -> same-side
-     bending 0.7 deg/deg (C4-C5: 5.5 deg rotation with 4.0 deg same-side
-     lateral flexion at maximal rotation, Salem et al., Man Ther 18:339-344,
-     2013); bending -> same-side rotation 0.5 deg/deg (assumption).
-   - O-C1 and C1-C2 during rotation, per degree of C1-C2 rotation (values at
-     maximal rotation, C1-C2 rotating ~37 deg): contralateral lateral bending
-     O-C1 0.12 and C1-C2 0.08 (4.1 / 3.8 deg, Ishii 2004; 5.0 / 2.5 deg,
-     Salem 2013) and extension O-C1 0.34 and C1-C2 0.15 (13.3 / 6.9 deg,
-     Ishii 2004; 12.0 / 4.0 deg, Salem 2013).  The coupled extension uses a
-     smooth |.| (softened over 2 deg) so the pose stays smooth through zero.
-   - During lateral bending C1-C2 rotates against the subaxial coupled
-     rotation by 0.6 of its sum (assumption: the upper cervical spine keeps the
-     face forward; its coupling direction varies between studies, Cook 2006).
-   Per person each coupling ratio is scaled by LogNormal(0, 0.2).
-5. Each angle goes through a smooth saturation ``x / (1 + |x/R|^8)^(1/8)``
-   towards the person's range R in its direction, so every pose is inside the
-   published limits (``models.joint_limits.within_limits``).
+1. A *person*.  Segmental ranges (the envelope, never exceeded): the published ranges [WP90] times
+   ``clip(LogNormal(log 0.85, 0.2), 0.5, 1)`` per level and motion; the spread is [L14]'s coefficient of
+   variation (0.25-0.36, partly measurement error, hence 0.2), the median 0.85 an assumption (a person moves
+   inside the envelope).  Head range per direction (flexion, extension, lateral bending and axial rotation
+   to one side): ``HEAD_RANGE_UTILISATION`` times the sum of the published segmental ranges, times
+   ``LogNormal(0, 0.19)`` ([Z21]'s 10.8 / 55.5).  Shares and coupling ratios vary per person (below).
+2. Three smooth *drives* per sequence in [-1, 1]: sagittal (+ flexion), axial (+ to the left), lateral
+   (+ to the right): the fraction of the person's head range the movement asks for; nods, turns, tilts and
+   combinations from minimum-jerk moves between held targets [FH85] and enveloped oscillations.
+3. *Shares that depend on direction and size*.  For a drive of size m, level j moves
+   ``T * (s0_j m + (s1_j - s0_j) m^2 / 2)``: its share of each further degree of head motion goes linearly
+   from ``s0`` (start) to ``s1`` (end of the range), both summing to 1 over the levels, so the head moves
+   ``T m`` and level j's share of a motion of size m is ``s0_j + (s1_j - s0_j) m / 2``.  We set the share at
+   full range F (``(s0 + s1) / 2``) and the start share s0 from the sources; ``s1 = 2 F - s0``.
+   - Axial rotation: F from [Z21] (C0-C2 71.3 %, C2-T1 18.6 %, normalised to their sum, as the means over
+     subjects do not add to 100), O-C1 : C1-C2 from [I04a] and [S13] (means 2.1 : 36.85 deg), the subaxial
+     split from [I04b].  Start: C1-C2 takes 90 % of a small yaw (assumption, consistent with [I04a]'s
+     shrinking C1-C2 increments; the others keep their proportions), so its share falls from 0.90 to 0.75.
+   - Flexion: F is the published flexion split [WP90, P88] (the ranges are measured at full flexion).  Start:
+     O-C1 and C1-C2 30 % together [BM00] (in their published proportion; the value is an assumption), C7-T1
+     2 % (assumption), C2-C7 the rest split as [W10]'s first third (C3/4 29.89 %, C4/5 37.14 %, the other
+     33 % evenly: assumption); so flexion spreads down the neck as it grows (C5/6 and C6/7 take most of the
+     end, as [W10] and [A13] report).
+   - Extension: F the published extension split.  Start: upper cervical 30 % (as F: assumption), C7-T1 5 %
+     (assumption), C2-C7 as [W10]'s start of extension (C5/6 30.21 %, the rest spread: assumption); it ends
+     at C3/4 and C4/5 [W10].
+   - Lateral bending: F from [L14] (C2/3..C6/7) with the published C7-T1, O-C1 and C1-C2 ranges [WP90].
+     Start: O-C1 and C1-C2 at half their F (late recruitment: assumption; no size-resolved data found).
+   Per person s0 and s1 are scaled by ``LogNormal(0, share_sigma)`` per level and renormalised ([Z21]: the
+   C2-T1 share's coefficient of variation is 7.2 / 18.6 = 0.39, the C0-C2 share's 0.12; sigma 0.2).
+4. *Coupling*, linear in the head's primary angle phi (degrees of coupled motion per degree; [Z21] reports
+   the coupled motions by their correlation with the primary rotation):
+   - Rotation -> bending: upper contralateral 18.2 / 55.5 = 0.33, split O-C1 : C1-C2 = 4.1 : 3.8 [I04a];
+     lower ipsilateral 21.4 / 55.5 = 0.39 [Z21], split as the subaxial rotation [I04b] (assumption).  Both
+     saturate at the published lateral ranges, which [Z21]'s upper value exceeds at large turns.
+   - Rotation -> sagittal: O-C1 extension 0.08 and C1-C2 0.04 per degree (assumption: [I04a] and [S13] report
+     13.3 / 12.0 and 6.9 / 4.0 deg at maximal passive rotation, ~0.25 and ~0.1 per degree, supine or lying;
+     upright, the head turns horizontally [Z21], and the held-back recording of issue 15 shows only 3.4 deg
+     at O-C1 on average at 30 deg of head rotation), balanced by flexion at C5-C6 and C6-C7 [S13] so the head
+     stays level (assumption).  A smooth |phi|, ``sqrt(phi^2 + s^2) - s`` with s = 10 deg (assumption), keeps
+     it smooth through zero (small turns couple little sagittal motion; a sharper corner is a fold no smooth
+     model of H can follow).
+   - Bending -> rotation: subaxial to the same side [C06], 10.0 / 21.4 = 0.47 deg per deg of bending ([Z21]'s
+     lower region, assumed to hold when bending drives); C1-C2 turns back by 0.8 of the subaxial coupled
+     rotation so the face stays forward (assumption; [C06]: the upper direction varies between studies).
+   Per person each ratio is scaled by ``LogNormal(0, coupling_sigma)`` ([Z21]: CV 0.24-0.32; sigma 0.3).
+5. Each angle saturates smoothly, ``x / (1 + |x/R|^8)^(1/8)``, at the person's range R in its direction, so
+   every pose is inside the published limits (``models.joint_limits.within_limits``).
 
-Real sequences: :func:`load_theta_sequences` reads HACK-layout theta arrays
-(``data/theta_list.npy`` of the release: ``[T,8,3]`` axis-angle radians per
-joint in its bone frame, ``models.rig`` convention), a file or a folder of them.
-They carry no frame rate, and need none: their one user, the head-to-neck
-mapping, is per frame.
+``PriorConfig`` also shifts the process (for tests of a model on a prior other than its training one):
+``head_range_scale`` scales T, ``size_dependence`` scales ``s0 - F`` (0 = the same split at every size),
+``coupling_scale`` the coupling ratios.
+
+Real sequences: :func:`load_theta_sequences` reads HACK-layout theta arrays (``data/theta_list.npy`` of the
+release: ``[T,8,3]`` axis-angle radians per joint in its bone frame, ``models.rig`` convention), a file or a
+folder of them.  They carry no frame rate, and need none: their one user, the head-to-neck mapping, is per frame.
 """
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from data.errors import InputError
-
 from data.files import load_npy
 from models.joint_limits import JOINT_LEVELS, RANGES_DEG
 from models.rotations import euler_to_axis_angle
 
 NUM_JOINTS = len(JOINT_LEVELS)
 SUBAXIAL = slice(0, 6)          # C7-T1 .. C2-C3
-C1C2, OC1 = 6, 7
-FLEX, EXT, LAT, AXIAL = range(4)  # columns of RANGES_DEG
+C6C7, C5C6, C1C2, OC1 = 1, 2, 6, 7
+FLEX, EXT, LAT, AXIAL = range(4)  # columns of RANGES_DEG, and the four directions of the head
+DIRECTIONS = ("flexion", "extension", "lateral", "axial")
 SAGITTAL_DRIVE, AXIAL_DRIVE, LATERAL_DRIVE = range(3)
 MOTION_KINDS = ("nod", "turn", "tilt", "combo")
 
-# Recruitment earliness k per level (root to head), see the module docstring.
-RECRUITMENT_SAGITTAL = np.array([-1.0, -1.0, -1.0, 0.0, 0.0, 0.0, 1.0, 2.0])
-RECRUITMENT_AXIAL = np.array([-1.5, -1.5, -1.5, -1.5, -1.5, -1.5, 2.0, 0.0])
-RECRUITMENT_LATERAL = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.5, -1.5])
 
-# Coupling ratios (degrees of coupled motion per degree of the driver), see the docstring.
+def _normalised(x) -> np.ndarray:
+    x = np.asarray(x, dtype=float)
+    return x / x.sum()
+
+
+def _start_shares(full: np.ndarray, fixed: dict[int, float]) -> np.ndarray:
+    """Start shares: the levels in ``fixed`` take their given share, the others keep their proportions of ``full``."""
+    start = full.copy()
+    rest = [j for j in range(NUM_JOINTS) if j not in fixed]
+    start[rest] = full[rest] * (1.0 - sum(fixed.values())) / full[rest].sum()
+    for j, share in fixed.items():
+        start[j] = share
+    return start
+
+
+# ----------------------------------------------------------------------------- shares (root to head)
+
+# Axial rotation.  [Z21] regions normalised to their sum; O-C1 : C1-C2 = mean of [I04a] 1.7 : 36.2 and
+# [S13] 2.5 : 37.5; the subaxial split of [I04b] (C7-T1 1.5, C6-C7 1.6, C5-C6 4.0, C4-C5 4.6, C3-C4 4.5, C2-C3 2.2).
+UPPER_AXIAL_SHARE = 71.3 / (71.3 + 18.6)
+_upper_axial = _normalised([(1.7 + 2.5) / 2, (36.2 + 37.5) / 2])      # O-C1, C1-C2
+AXIAL_FULL = np.concatenate([(1 - UPPER_AXIAL_SHARE) * _normalised([1.5, 1.6, 4.0, 4.6, 4.5, 2.2]),
+                             UPPER_AXIAL_SHARE * _upper_axial[::-1]])
+C1C2_SMALL_YAW_SHARE = 0.90     # assumption, consistent with [I04a]
+AXIAL_START = _start_shares(AXIAL_FULL, {C1C2: C1C2_SMALL_YAW_SHARE})
+
+# Flexion.  Full range: the published flexion ranges [WP90, P88].  Start: see the module docstring.
+FLEXION_FULL = _normalised(RANGES_DEG[:, FLEX])
+_upper_flexion = 0.30 * _normalised(RANGES_DEG[[C1C2, OC1], FLEX])                      # [BM00]; value assumed
+_c2c7_flexion_start = _normalised([0.11, 0.11, 0.3714, 0.2989, 0.11])  # C6/7, C5/6, C4/5, C3/4, C2/3 [W10]
+FLEXION_START = np.concatenate([[0.02], (1 - 0.02 - 0.30) * _c2c7_flexion_start, _upper_flexion])
+
+# Extension.  Full range: the published extension ranges.  Start: C5/6 30.21 % of C2-C7 [W10], the rest spread.
+EXTENSION_FULL = _normalised(RANGES_DEG[:, EXT])
+_upper_extension = 0.30 * _normalised(RANGES_DEG[[C1C2, OC1], EXT])
+_c2c7_extension_start = _normalised([0.20, 0.3021, 0.20, 0.15, 0.1479])  # C6/7, C5/6, C4/5, C3/4, C2/3
+EXTENSION_START = np.concatenate([[0.05], (1 - 0.05 - 0.30) * _c2c7_extension_start, _upper_extension])
+
+# Lateral bending.  [L14] C2/3..C6/7 (listed here root first), published C7-T1, C1-C2, O-C1 [WP90].
+LATERAL_FULL = _normalised([RANGES_DEG[0, LAT], 6.31, 7.19, 8.91, 8.37, 7.66, RANGES_DEG[C1C2, LAT],
+                            RANGES_DEG[OC1, LAT]])
+LATERAL_START = _start_shares(LATERAL_FULL, {C1C2: 0.5 * LATERAL_FULL[C1C2], OC1: 0.5 * LATERAL_FULL[OC1]})
+
+FULL_SHARES = np.stack([FLEXION_FULL, EXTENSION_FULL, LATERAL_FULL, AXIAL_FULL])      # [4 directions, J]
+START_SHARES = np.stack([FLEXION_START, EXTENSION_START, LATERAL_START, AXIAL_START])
+
+# Head range in a direction = this times the sum of the published segmental ranges: [Z21]'s 55.5 deg of
+# one-sided C0-T1 rotation over the 77 deg sum of the published one-sided axial ranges; the same ratio is
+# assumed for flexion, extension and lateral bending (no C0-T1 in-vivo totals found for them).
+HEAD_RANGE_UTILISATION = 55.5 / RANGES_DEG[:, AXIAL].sum()
+HEAD_RANGE_DEG = HEAD_RANGE_UTILISATION * RANGES_DEG.sum(0)   # [4]: the default person's head range per direction
+
+# ----------------------------------------------------------------------------- coupling
+
+# Per-level distributions of each coupled motion (sum 1 over the levels that take part).
+_subaxial_rotation = np.concatenate([_normalised([1.5, 1.6, 4.0, 4.6, 4.5, 2.2]), [0.0, 0.0]])   # [I04b]
+_upper_bending = np.array([0, 0, 0, 0, 0, 0, 3.8, 4.1]) / (3.8 + 4.1)                            # [I04a]
 COUPLING = {
-    "subaxial_rotation_to_bending": 0.7,   # Salem et al. 2013
-    "subaxial_bending_to_rotation": 0.5,   # assumption
-    "oc1_bending_per_c1c2_rotation": 0.12,  # Ishii 2004, Salem 2013
-    "c1c2_bending_per_c1c2_rotation": 0.08,
-    "oc1_extension_per_c1c2_rotation": 0.34,
-    "c1c2_extension_per_c1c2_rotation": 0.15,
-    "c1c2_counter_rotation_in_bending": 0.6,  # assumption
+    # degrees of coupled motion per degree of the head's primary angle
+    "upper_contralateral_bending_per_rotation": 18.2 / 55.5,   # [Z21]
+    "lower_ipsilateral_bending_per_rotation": 21.4 / 55.5,     # [Z21]
+    "oc1_extension_per_rotation": 0.08,                        # assumption (see the module docstring)
+    "c1c2_extension_per_rotation": 0.04,                       # assumption
+    "subaxial_rotation_per_bending": 10.0 / 21.4,              # [Z21] lower region, assumed reversible
+    "c1c2_counter_rotation_in_bending": 0.8,                   # assumption
 }
+LOWER_BENDING_LEVELS = _subaxial_rotation                       # assumption: as the subaxial rotation
+UPPER_BENDING_LEVELS = _upper_bending
+BALANCING_FLEXION_LEVELS = np.array([0, 0.5, 0.5, 0, 0, 0, 0, 0])  # C6-C7, C5-C6 [S13]; halves assumed
+SUBAXIAL_BENDING_LEVELS = np.concatenate([np.ones(6), [0.0, 0.0]])
 SATURATION_POWER = 8
-SOFT_ABS_DEG = 2.0
+SOFT_ABS_DEG = 10.0
 
 
-@dataclass(frozen=True)
+@dataclass
 class PriorConfig:
-    """Settings of the generator (mirrored by ``configs/data_task/head2neck_synthetic.yaml``)."""
+    """Settings of the generator (the defaults are the prior of the module docstring)."""
 
     fps: float = 30.0                  # frames per second of the sequences
     seconds: float = 4.0               # length of a sequence
-    range_scale_median: float = 0.85   # person's range = published * LogNormal(log median, sigma), clipped
+    range_scale_median: float = 0.85   # person's segmental range = published * LogNormal(log median, sigma), clipped
     range_scale_sigma: float = 0.2
     range_scale_min: float = 0.5
-    recruitment_sigma: float = 0.3     # per-person jitter of the recruitment k
-    coupling_sigma: float = 0.2        # per-person log-jitter of the coupling ratios
-    kind_weights: tuple[float, float, float, float] = (0.2, 0.2, 0.2, 0.4)  # nod, turn, tilt, combo
+    head_range_scale: float = 1.0      # scales the head range per direction (a shift of the prior)
+    head_range_sigma: float = 0.19     # per-person log-spread of the head range ([Z21]: 10.8 / 55.5)
+    size_dependence: float = 1.0       # scales s0 - F: 0 = the same split at every size, 1 = the sources'
+    share_sigma: float = 0.2           # per-person log-jitter of the start and end shares
+    coupling_scale: float = 1.0        # scales every coupling ratio (a shift of the prior)
+    coupling_sigma: float = 0.3        # per-person log-jitter of the coupling ratios
+    kind_weights: list[float] = field(default_factory=lambda: [0.2, 0.2, 0.2, 0.4])  # nod, turn, tilt, combo
 
     def __post_init__(self) -> None:
         """ValueError naming the first field out of range."""
-        for name in ("fps", "seconds", "range_scale_median"):
+        for name in ("fps", "seconds", "range_scale_median", "head_range_scale"):
             if not float(getattr(self, name)) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if round(self.seconds * self.fps) < 2:
             raise ValueError(f"seconds * fps = {self.seconds * self.fps:g} frames per sequence, expected at least 2")
-        for name in ("range_scale_sigma", "recruitment_sigma", "coupling_sigma"):
+        for name in ("range_scale_sigma", "head_range_sigma", "share_sigma", "coupling_sigma", "coupling_scale"):
             if not float(getattr(self, name)) >= 0:
-                raise ValueError(f"{name} must be a non-negative spread, got {getattr(self, name)}")
+                raise ValueError(f"{name} must be non-negative, got {getattr(self, name)}")
         if not 0 < float(self.range_scale_min) <= 1:
             raise ValueError(f"range_scale_min must be in (0, 1] (the published range is the envelope), got "
                              f"{self.range_scale_min}")
+        if not 0 <= float(self.size_dependence) <= 1.5:
+            raise ValueError(f"size_dependence must be in [0, 1.5] (beyond, some end shares turn negative), got "
+                             f"{self.size_dependence}")
         weights = np.asarray(self.kind_weights, dtype=float)
         if weights.shape != (len(MOTION_KINDS),) or not (weights >= 0).all() or not weights.sum() > 0:
-            raise ValueError(f"kind_weights must be {len(MOTION_KINDS)} non-negative weights ({', '.join(MOTION_KINDS)}) "
-                             f"with a positive sum, got {self.kind_weights}")
+            raise ValueError(f"kind_weights must be {len(MOTION_KINDS)} non-negative weights "
+                             f"({', '.join(MOTION_KINDS)}) with a positive sum, got {self.kind_weights}")
 
 
 @dataclass
 class Persons:
     """Per-person parameters, batched over N persons.
 
-    ranges_deg:  [N,J,4] flexion, extension, lateral (one side), axial (one side), degrees.
-    recruitment: [N,J,3] k for the sagittal, axial and lateral drives.
-    coupling:    [N,C] ratios in ``COUPLING`` order.
+    ranges_deg:     [N,J,4] segmental flexion, extension, lateral (one side), axial (one side), degrees.
+    head_range_deg: [N,4] the head's range per direction (same order), degrees.
+    start_shares:   [N,4,J] shares s0 of each direction's first degrees (sum 1 over J).
+    end_shares:     [N,4,J] shares s1 of its last degrees (sum 1 over J).
+    coupling:       [N,C] ratios in ``COUPLING`` order.
     """
 
     ranges_deg: np.ndarray
-    recruitment: np.ndarray
+    head_range_deg: np.ndarray
+    start_shares: np.ndarray
+    end_shares: np.ndarray
     coupling: np.ndarray
 
     def __len__(self) -> int:
@@ -186,27 +278,38 @@ class ThetaSequences:
 # ----------------------------------------------------------------------------- persons
 
 
-def sample_persons(count: int, rng: np.random.Generator, config: PriorConfig = PriorConfig()) -> Persons:
+def _jittered_shares(shares: np.ndarray, rng: np.random.Generator, count: int, sigma: float) -> np.ndarray:
+    """[4,J] shares times LogNormal(0, sigma) per person, direction and level, renormalised -> [N,4,J]."""
+    out = shares[None] * np.exp(rng.normal(0.0, sigma, (count, *shares.shape)))
+    return out / out.sum(-1, keepdims=True)
+
+
+def sample_persons(count: int, rng: np.random.Generator, config: PriorConfig | None = None) -> Persons:
+    """``count`` persons drawn from ``rng`` (see the module docstring, step 1, 3 and 4)."""
+    config = PriorConfig() if config is None else config
     scale = np.exp(rng.normal(np.log(config.range_scale_median), config.range_scale_sigma, (count, NUM_JOINTS, 4)))
     ranges = RANGES_DEG[None] * np.clip(scale, config.range_scale_min, 1.0)
-    base = np.stack([RECRUITMENT_SAGITTAL, RECRUITMENT_AXIAL, RECRUITMENT_LATERAL], axis=1)
-    recruitment = base[None] + rng.normal(0.0, config.recruitment_sigma, (count, NUM_JOINTS, 3))
-    coupling = np.array(list(COUPLING.values()))[None] * np.exp(
+    head = (config.head_range_scale * HEAD_RANGE_DEG)[None] * np.clip(
+        np.exp(rng.normal(0.0, config.head_range_sigma, (count, 4))), 0.5, 1.5)
+    start = FULL_SHARES + config.size_dependence * (START_SHARES - FULL_SHARES)
+    end = 2.0 * FULL_SHARES - start
+    start = _jittered_shares(start, rng, count, config.share_sigma)
+    end = _jittered_shares(end, rng, count, config.share_sigma)
+    coupling = config.coupling_scale * np.array(list(COUPLING.values()))[None] * np.exp(
         rng.normal(0.0, config.coupling_sigma, (count, len(COUPLING))))
-    return Persons(ranges, recruitment, coupling)
+    return Persons(ranges, head, start, end, coupling)
 
 
 # ----------------------------------------------------------------------------- segmental model
 
 
-def recruitment_curve(drive: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Odd recruitment ``sign(d) u(|d|; k)``, ``u(m; k) = (1 - e^(-km)) / (1 - e^(-k))`` (u = m at k = 0).
+def cumulative_share(size: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Fraction of a direction's head range each level has moved at drive ``size`` in [0, 1]:
+    ``s0 m + (s1 - s0) m^2 / 2`` (the integral of shares going linearly from s0 to s1).
 
-    drive [..., ] and k broadcastable -> same shape.  u(0) = 0, u(1) = 1, C^1 through 0.
+    size [...,1] and start, end [...,J] broadcastable -> [...,J]; sums over J to ``size``.
     """
-    m = np.abs(drive)
-    k = np.where(np.abs(k) < 1e-6, 1e-6, k)
-    return np.sign(drive) * np.expm1(-k * m) / np.expm1(-k)
+    return start * size + (end - start) * size**2 / 2
 
 
 def saturate(x: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -217,33 +320,39 @@ def saturate(x: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
 
 def segmental_euler(drives: np.ndarray, persons: Persons) -> np.ndarray:
     """Segmental Euler angles from drives.  drives [N,T,3] in [-1, 1] -> euler [N,T,J,3] radians."""
-    ranges = np.radians(persons.ranges_deg)[:, None]          # [N,1,J,4]
-    k = persons.recruitment[:, None]                            # [N,1,J,3]
-    c = dict(zip(COUPLING, np.moveaxis(persons.coupling, -1, 0)))
-    c = {name: value[:, None, None] for name, value in c.items()}  # [N,1,1] each
-    d = drives[:, :, None, :]                                   # [N,T,1,3]
+    ranges = np.radians(persons.ranges_deg)[:, None]            # [N,1,J,4]
+    head = np.radians(persons.head_range_deg)[:, None, None]    # [N,1,1,4]
+    start, end = persons.start_shares[:, None], persons.end_shares[:, None]  # [N,1,4,J]
+    c = {name: value[:, None, None] for name, value in zip(COUPLING, np.moveaxis(persons.coupling, -1, 0))}
+    d = drives[..., None]                                       # [N,T,3,1]
 
-    sagittal = recruitment_curve(d[..., SAGITTAL_DRIVE], k[..., SAGITTAL_DRIVE])
-    ax = np.where(sagittal >= 0, ranges[..., FLEX], ranges[..., EXT]) * sagittal
-    ay = ranges[..., AXIAL] * recruitment_curve(d[..., AXIAL_DRIVE], k[..., AXIAL_DRIVE])
-    az = ranges[..., LAT] * recruitment_curve(d[..., LATERAL_DRIVE], k[..., LATERAL_DRIVE])
+    def primary(direction: int, drive: np.ndarray) -> np.ndarray:
+        size = np.abs(drive)
+        return head[..., direction] * cumulative_share(size, start[:, :, direction], end[:, :, direction])
 
-    # Subaxial coupling to the same side: rotation to the left (+ay) with bending to the left (-az).
-    sub = np.zeros(NUM_JOINTS, bool)
-    sub[SUBAXIAL] = True
-    coupled_ay = np.where(sub, -c["subaxial_bending_to_rotation"] * az, 0.0)
-    coupled_az = np.where(sub, -c["subaxial_rotation_to_bending"] * ay, 0.0)
-    # Upper cervical coupling with C1-C2 rotation: contralateral bending and extension.
-    c1c2_rotation = ay[..., C1C2]
+    sagittal = d[:, :, SAGITTAL_DRIVE]
+    ax = np.where(sagittal >= 0, primary(FLEX, sagittal), -primary(EXT, sagittal))
+    ay = np.sign(d[:, :, AXIAL_DRIVE]) * primary(AXIAL, d[:, :, AXIAL_DRIVE])
+    az = np.sign(d[:, :, LATERAL_DRIVE]) * primary(LAT, d[:, :, LATERAL_DRIVE])
+
+    # Rotation to the left (phi > 0): upper levels bend to the right (+az), lower levels to the left (-az);
+    # upper extension balanced by C5-C7 flexion.
+    phi = head[..., AXIAL] * d[:, :, AXIAL_DRIVE]               # the head's primary rotation [N,T,1]
     soft = np.radians(SOFT_ABS_DEG)
-    rotation_magnitude = np.sqrt(c1c2_rotation**2 + soft**2) - soft
-    coupled_az[..., OC1] += c["oc1_bending_per_c1c2_rotation"][..., 0] * c1c2_rotation
-    coupled_az[..., C1C2] += c["c1c2_bending_per_c1c2_rotation"][..., 0] * c1c2_rotation
-    coupled_ax = np.zeros_like(ax)
-    coupled_ax[..., OC1] -= c["oc1_extension_per_c1c2_rotation"][..., 0] * rotation_magnitude
-    coupled_ax[..., C1C2] -= c["c1c2_extension_per_c1c2_rotation"][..., 0] * rotation_magnitude
-    # C1-C2 turns against the subaxial rotation coupled with lateral bending.
-    coupled_ay[..., C1C2] -= c["c1c2_counter_rotation_in_bending"][..., 0] * coupled_ay[..., SUBAXIAL].sum(-1)
+    phi_magnitude = np.sqrt(phi**2 + soft**2) - soft
+    coupled_az = (c["upper_contralateral_bending_per_rotation"] * UPPER_BENDING_LEVELS
+                  - c["lower_ipsilateral_bending_per_rotation"] * LOWER_BENDING_LEVELS) * phi
+    extension = np.zeros(NUM_JOINTS)
+    extension_c1c2, extension_oc1 = extension.copy(), extension.copy()
+    extension_c1c2[C1C2], extension_oc1[OC1] = 1.0, 1.0
+    upper_extension = (c["oc1_extension_per_rotation"] * extension_oc1
+                       + c["c1c2_extension_per_rotation"] * extension_c1c2)
+    total_extension = c["oc1_extension_per_rotation"] + c["c1c2_extension_per_rotation"]
+    coupled_ax = (total_extension * BALANCING_FLEXION_LEVELS - upper_extension) * phi_magnitude
+    # Bending to the right (+az) turns the subaxial levels to the right (-ay); C1-C2 turns back.
+    subaxial_rotation = -c["subaxial_rotation_per_bending"] * az * SUBAXIAL_BENDING_LEVELS
+    coupled_ay = subaxial_rotation.copy()
+    coupled_ay[..., C1C2] -= c["c1c2_counter_rotation_in_bending"][..., 0] * subaxial_rotation.sum(-1)
 
     lower = np.stack([-ranges[..., EXT], -ranges[..., AXIAL], -ranges[..., LAT]], axis=-1)
     upper = np.stack([ranges[..., FLEX], ranges[..., AXIAL], ranges[..., LAT]], axis=-1)
@@ -255,7 +364,7 @@ def segmental_euler(drives: np.ndarray, persons: Persons) -> np.ndarray:
 
 
 def minimum_jerk(tau: np.ndarray) -> np.ndarray:
-    """Minimum-jerk position profile on tau in [0, 1] (Flash & Hogan 1985): 10t^3 - 15t^4 + 6t^5."""
+    """Minimum-jerk position profile on tau in [0, 1] [FH85]: 10t^3 - 15t^4 + 6t^5."""
     t = np.clip(tau, 0.0, 1.0)
     return t**3 * (10 - 15 * t + 6 * t**2)
 
@@ -315,8 +424,9 @@ def motion_drives(rng: np.random.Generator, num_frames: int, fps: float, kind: s
 # ----------------------------------------------------------------------------- sequences
 
 
-def sample_sequences(count: int, seed: int, config: PriorConfig = PriorConfig()) -> ThetaSequences:
+def sample_sequences(count: int, seed: int, config: PriorConfig | None = None) -> ThetaSequences:
     """``count`` sequences, one new person each, drawn from ``np.random.default_rng(seed)``."""
+    config = PriorConfig() if config is None else config
     rng = np.random.default_rng(seed)
     num_frames = int(round(config.seconds * config.fps))
     persons = sample_persons(count, rng, config)

@@ -1,4 +1,4 @@
-"""Head orientation -> the 8 cervical joint rotations: the MLP, two analytic baselines, and the exact correction.
+"""Head orientation -> the 8 cervical joint rotations: the MLP, analytic baselines, and the exact correction.
 
 Facial trackers give one head orientation ``H`` (``[B,3,3]``, the rig's world
 frame, the definition of ``HeadNeckModel.head_rotation``); HACK needs theta
@@ -18,14 +18,23 @@ shares that sum to 1 over the joints: ``theta_j = s_j * (C_j^T v)`` (component-w
   ``v / 8`` in the world, so the chain reproduces H exactly.
 - *rom*: each joint's share of the chain's range of motion on that axis
   (``models.joint_limits.range_of_motion_shares``: flexion or extension by the
-  sign of the x component, axial rotation for y, lateral bending for z).  The
-  joint frames are not parallel, so the chain reproduces H only
-  approximately; :func:`correct_to_head` makes it exact.
+  sign of the x component, axial rotation for y, lateral bending for z).
+- *invivo*: the in-vivo prior's measured shares (``data.cervical_prior``),
+  which change with the size of the motion (:func:`invivo_shares`): a small
+  yaw goes mostly to C1-C2, flexion spreads down the neck as it grows.  It
+  has none of the prior's coupling.
+The joint frames are not parallel, so the last two reproduce H only
+approximately; :func:`correct_to_head` makes them exact.
 
-Model (:class:`Head2NeckMLP`): an MLP (2 hidden layers of 512 by default) on
-the 6D representation of H (``models.rotations.matrix_to_rot6d``) whose output
-is added to the ROM split, ``theta = rom_split(H) + residual_scale * MLP(H)``;
-the last layer starts at zero, so an untrained model is the ROM baseline.
+Model (:class:`Head2NeckMLP`, sizes in :class:`Head2NeckConfig`): an MLP (2
+hidden layers of 512 by default) on the 6D representation of H
+(``models.rotations.matrix_to_rot6d``, minus the identity's, times
+``input_scale``) whose output is added to a split,
+``theta = split(H) + residual_scale * MLP(H)`` (``base``: the in-vivo split by
+default); the last layer starts at zero, so an untrained model is that
+split.  The model holds no rig: the rest frames C_j are an argument of
+``forward`` (read from the rig in use by :func:`predict_theta`), so one
+checkpoint serves the built-in rig and the real release alike.
 
 Correction (:func:`correct_to_head`), making the chain reproduce H: damped
 Gauss-Newton steps on the residual rotation ``rho = log(H H(theta)^T)`` (world
@@ -49,18 +58,33 @@ quantity as ``HeadNeckModel.head_rotation`` without the translations.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
 
 import torch
 from torch import nn
 
+from data.cervical_prior import AXIAL, EXT, FLEX, FULL_SHARES, HEAD_RANGE_DEG, LAT, START_SHARES
+from data.cli import register_config
 from data.errors import InputError
-from models.joint_limits import euler_limits, range_of_motion_shares
-from models.rotations import (axis_angle_to_euler, axis_angle_to_quaternion, euler_to_axis_angle, euler_to_quaternion,
-                              matrix_to_axis_angle, matrix_to_quaternion, matrix_to_rot6d, quaternion_multiply,
-                              quaternion_to_axis_angle, quaternion_to_matrix, relative_angle)
+from models.joint_limits import JOINT_LEVELS, euler_limits, range_of_motion_shares
+from models.rotations import (
+    axis_angle_to_euler,
+    axis_angle_to_quaternion,
+    euler_to_axis_angle,
+    euler_to_quaternion,
+    matrix_to_axis_angle,
+    matrix_to_quaternion,
+    matrix_to_rot6d,
+    quaternion_multiply,
+    quaternion_to_axis_angle,
+    quaternion_to_matrix,
+    relative_angle,
+)
 
-SPLITS = ("uniform", "rom")
+NUM_JOINTS = len(JOINT_LEVELS)
+SPLITS = ("uniform", "rom", "invivo")
+BASES = ("rom", "invivo")
 # In place where torch offers it: the same values and gradients, and ~1.4x faster inference on CPU
 # (no fresh [B,512] buffers to fault in).
 ACTIVATIONS = {"silu": lambda: nn.SiLU(inplace=True), "relu": lambda: nn.ReLU(inplace=True), "gelu": nn.GELU,
@@ -82,55 +106,118 @@ def split_head_rotation(head_rotations: torch.Tensor, rest: torch.Tensor, split:
     in_joint_frames = torch.einsum("jkc,bk->bjc", rest.to(v), v)              # C_j^T v  [B,J,3]
     if split == "uniform":
         return in_joint_frames / rest.shape[0]
+    if split == "invivo":
+        return in_joint_frames * invivo_shares(in_joint_frames)
     positive, negative = range_of_motion_shares()
     return in_joint_frames * torch.where(in_joint_frames >= 0, positive.to(v), negative.to(v))
+
+
+def invivo_shares(components: torch.Tensor) -> torch.Tensor:
+    """The in-vivo prior's mean shares (``data.cervical_prior``: measured segmental contributions that change
+    with the size of the motion) for the head's rotation in the joints' frames.
+
+    components [B,J,3] (``C_j^T v``) -> shares [B,J,3] summing to 1 over J per axis: for axis c (x: flexion
+    or extension by the sign, y: axial rotation, z: lateral bending) the share of a motion of size
+    ``m = mean_j |u_jc| / T_c`` (T the default head range) is ``s0 + (s1 - s0) min(m, 1) / 2``.
+    """
+    start = torch.tensor(START_SHARES, dtype=components.dtype)                     # [4 directions, J]
+    end = 2.0 * torch.tensor(FULL_SHARES, dtype=components.dtype) - start
+    head_range = torch.deg2rad(torch.tensor(HEAD_RANGE_DEG, dtype=components.dtype))
+    size = components.abs().mean(1)                                               # [B,3]
+
+    def shares(direction: int, axis: int) -> torch.Tensor:                        # [B,J]
+        m = (size[:, axis:axis + 1] / head_range[direction]).clamp(max=1.0)
+        return start[direction] + (end[direction] - start[direction]) * m / 2
+
+    sagittal = torch.where(components[..., 0] >= 0, shares(FLEX, 0), shares(EXT, 0))
+    return torch.stack([sagittal, shares(AXIAL, 1), shares(LAT, 2)], dim=-1)
 
 
 # ----------------------------------------------------------------------------- the MLP
 
 
-class Head2NeckMLP(nn.Module):
-    """Head orientation [B,3,3] -> theta [B,J,3]: ROM split + residual_scale * MLP(rot6d(H))."""
+@dataclass
+class Head2NeckConfig:
+    """Sizes of :class:`Head2NeckMLP` (the ``model`` group of ``python train.py task=head2neck``).
 
-    def __init__(self, rest: torch.Tensor, hidden: Sequence[int] = (512, 512), activation: str = "silu",
-                 residual_scale: float = 0.1):
+    Nothing here depends on a rig: the model reads the rig's joint rest frames when it runs.
+    """
+
+    hidden: list[int] = field(default_factory=lambda: [512, 512])  # widths of the hidden layers
+    activation: str = "silu"          # silu | relu | gelu | tanh
+    residual_scale: float = 0.1       # theta = base split + residual_scale * MLP(rot6d(H)), radians
+    base: str = "invivo"              # the split the MLP corrects: invivo (the prior's measured shares) | rom
+    # The MLP sees (rot6d(H) - rot6d(I)) * input_scale: head rotations of a few degrees at unit scale, so it
+    # resolves how the shares change with the size of small motions (measured: 0.90 -> 0.73 deg on the
+    # prior with hidden [128,128] after 400 steps, input_scale 1 -> 10).
+    input_scale: float = 10.0
+
+    def __post_init__(self) -> None:
+        """ValueError naming the field out of range."""
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation={self.activation}: expected one of {', '.join(ACTIVATIONS)}")
+        if not list(self.hidden) or any(int(width) < 1 for width in self.hidden):
+            raise ValueError(f"hidden={list(self.hidden)}: expected one or more positive layer widths")
+        if not float(self.residual_scale) > 0:
+            raise ValueError(f"residual_scale={self.residual_scale}: expected a positive scale")
+        if not float(self.input_scale) > 0:
+            raise ValueError(f"input_scale={self.input_scale}: expected a positive scale")
+        if self.base not in BASES:
+            raise ValueError(f"base={self.base}: expected one of {', '.join(BASES)}")
+
+
+register_config("head2neck_schema", Head2NeckConfig, group="model")
+
+
+class Head2NeckMLP(nn.Module):
+    """Head orientation [B,3,3] -> anatomical theta [B,J,3]: ROM split + residual_scale * MLP(rot6d(H)).
+
+    Rig-independent: the joints' rest frames C_j (``rig.anatomical_rest_rotations``, [J,3,3]) are an input
+    of :meth:`forward`, so one trained model serves every rig with the 8 cervical joints.
+    """
+
+    def __init__(self, config: Head2NeckConfig | None = None, num_joints: int = NUM_JOINTS):
         super().__init__()
-        if activation not in ACTIVATIONS:
-            raise ValueError(f"unknown activation '{activation}', expected one of {', '.join(ACTIVATIONS)}")
-        # Rebuilt from model_config by build_model, so not saved twice in a checkpoint.
-        self.register_buffer("rest", torch.as_tensor(rest, dtype=torch.float32).reshape(-1, 3, 3).clone(),
-                             persistent=False)
-        self.num_joints = self.rest.shape[0]
-        self.residual_scale = float(residual_scale)
+        self.config = Head2NeckConfig() if config is None else config
+        self.num_joints = int(num_joints)
+        self.residual_scale = float(self.config.residual_scale)
+        self.input_scale = float(self.config.input_scale)
+        self.register_buffer("identity", matrix_to_rot6d(torch.eye(3)), persistent=False)
         layers: list[nn.Module] = []
         width = 6
-        for size in hidden:
-            layers += [nn.Linear(width, size), ACTIVATIONS[activation]()]
-            width = size
+        for size in self.config.hidden:
+            layers += [nn.Linear(width, int(size)), ACTIVATIONS[self.config.activation]()]
+            width = int(size)
         last = nn.Linear(width, self.num_joints * 3)
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
         self.mlp = nn.Sequential(*layers, last)
 
-    def forward(self, head_rotations: torch.Tensor) -> torch.Tensor:
-        base = split_head_rotation(head_rotations, self.rest, "rom")
-        residual = self.mlp(matrix_to_rot6d(head_rotations)).reshape(-1, self.num_joints, 3)
+    def forward(self, head_rotations: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
+        """head_rotations [B,3,3] (world frame, relative to rest), rest [J,3,3] (the rig's C_j) ->
+        anatomical theta [B,J,3] (axis-angle radians), before the exact correction."""
+        base = split_head_rotation(head_rotations, rest, self.config.base)
+        features = (matrix_to_rot6d(head_rotations) - self.identity.to(head_rotations)) * self.input_scale
+        residual = self.mlp(features).reshape(-1, self.num_joints, 3)
         return base + self.residual_scale * residual
 
 
-MODEL_KEYS = ("rest_rotations", "hidden", "activation", "residual_scale")
-
-
 def build_model(model_config: dict) -> Head2NeckMLP:
-    """``model_config``: rest_rotations ([J][3][3] nested list, the rig's anatomical C_j), hidden,
-    activation, residual_scale (configs/model/head2neck.yaml); missing or unknown keys are an error."""
-    missing = [k for k in MODEL_KEYS if k not in model_config]
-    unknown = sorted(set(model_config) - set(MODEL_KEYS))
-    if missing or unknown:
-        raise ValueError(f"head2neck model config: missing {missing}, unknown {unknown}; expected {list(MODEL_KEYS)}")
-    return Head2NeckMLP(torch.tensor(model_config["rest_rotations"], dtype=torch.float32),
-                        hidden=tuple(model_config["hidden"]), activation=model_config["activation"],
-                        residual_scale=float(model_config["residual_scale"]))
+    """The model of a checkpoint's ``model_config`` (the fields of :class:`Head2NeckConfig`); unknown or
+    missing keys, or values out of range, are a ValueError."""
+    names = {f.name for f in fields(Head2NeckConfig)}
+    unknown, missing = sorted(set(model_config) - names), sorted(names - set(model_config))
+    if unknown or missing:
+        raise ValueError(f"head2neck model config: unknown keys {unknown}, missing {missing}; expected "
+                         f"{sorted(names)}")
+    return Head2NeckMLP(Head2NeckConfig(**{k: (list(v) if k == "hidden" else v) for k, v in model_config.items()}))
+
+
+def model_config(model: Head2NeckMLP) -> dict:
+    """What :func:`build_model` needs to rebuild ``model`` (plain values, for a checkpoint)."""
+    return {"hidden": [int(w) for w in model.config.hidden], "activation": str(model.config.activation),
+            "residual_scale": float(model.config.residual_scale), "base": str(model.config.base),
+            "input_scale": float(model.config.input_scale)}
 
 
 # ----------------------------------------------------------------------------- kinematics and correction
@@ -239,12 +326,13 @@ def head_error_deg(theta: torch.Tensor, head_rotations: torch.Tensor, rig) -> to
     return torch.rad2deg(relative_angle(head, head_rotations.to(head)))
 
 
-def check_rig(model: Head2NeckMLP, rig, tolerance: float = 1e-4) -> None:
-    """InputError if ``rig``'s joint rest frames differ from those the model was trained with."""
-    rest = rig.anatomical_rest_rotations
-    if model.rest.shape != rest.shape or (model.rest - rest).abs().max() > tolerance:
-        raise InputError("the rig's joint rest frames differ from the head2neck model's (trained on another "
-                         "rig?); pass the rig it was trained with (rig=...)")
+def check_rig(model: Head2NeckMLP, rig) -> None:
+    """InputError unless ``rig`` has the model's cervical chain: ``num_joints`` joints, each the child of the
+    one before (root c7t1 to head oc1)."""
+    chain = list(range(-1, model.num_joints - 1))
+    if list(rig.parents) != chain:
+        raise InputError(f"the rig's skeleton (parents {list(rig.parents)}) is not the {model.num_joints}-joint "
+                         f"cervical chain the head2neck model drives (parents {chain})")
 
 
 @torch.no_grad()
@@ -256,5 +344,6 @@ def predict_theta(model: Head2NeckMLP, rig, head_rotations: torch.Tensor, iterat
     head_rotations = torch.as_tensor(head_rotations, dtype=torch.float32)
     if head_rotations.ndim != 3 or head_rotations.shape[1:] != (3, 3):
         raise InputError(f"head_rotations has shape {list(head_rotations.shape)}, expected [T,3,3]")
-    out = [correct_to_head(model(part), part, rig, iterations) for part in head_rotations.split(chunk)]
+    rest = rig.anatomical_rest_rotations
+    out = [correct_to_head(model(part, rest), part, rig, iterations) for part in head_rotations.split(chunk)]
     return rig.from_anatomical(torch.cat(out)) if out else head_rotations.new_zeros(0, model.num_joints, 3)

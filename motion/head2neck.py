@@ -1,8 +1,12 @@
 """Drive HACK's cervical spine from head orientations: ``python -m motion.head2neck``.
 
-    python -m motion.head2neck checkpoint=runs/head2neck/<run>/checkpoints/last.pt input=rotations.npy out=theta.npy
-    python -m motion.head2neck checkpoint=... input=ypr.npy input_format=ypr units=deg out=theta.npy
-    python -m motion.head2neck checkpoint=... input=take.csv out=theta.npy        # Live Link Face / ARKit CSV
+    python -m motion.head2neck input=rotations.npy out=theta.npy [checkpoint=runs/head2neck/<run>/checkpoints/last.pt]
+    python -m motion.head2neck input=ypr.npy input_format=ypr head_units=deg out=theta.npy
+    python -m motion.head2neck input=take.csv out=theta.npy recenter=true rig=hack_rig.npz  # Live Link Face / ARKit CSV
+
+Settings: :class:`Head2NeckCli` (``configs/head2neck.yaml``).  ``checkpoint=default`` (the default) is the
+shipped model (``models/pretrained``); the model holds nothing of a rig, so ``rig=`` (default: the built-in
+rig) says whose bone frames theta is written in.
 
 Output: theta ``[T,8,3]`` float32 (axis-angle radians per joint in its bone frame, ``models.rig``),
 one row per input frame, written atomically.  A CSV is resampled to a uniform grid at its own rate from
@@ -14,7 +18,7 @@ remaining head orientation error and any joints outside the limits are printed.
 Inputs (``input_format=auto`` picks by suffix and shape):
 - ``matrix``: ``.npy`` ``[T,3,3]`` head orientations in the rig's world frame (y up, face towards +z,
   x to the subject's left), relative to the rest pose: ``HeadNeckModel.head_rotation``'s definition.
-- ``ypr``: ``.npy`` ``[T,3]`` yaw, pitch, roll in ``units`` (rad | deg | halfturn, 1 halfturn = 180 deg).
+- ``ypr``: ``.npy`` ``[T,3]`` yaw, pitch, roll in ``head_units`` (rad | deg | halfturn, 1 halfturn = 180 deg).
 - ``csv``: an expression capture read by ``data.expressions.read_expressions`` with ``HeadYaw,
   HeadPitch, HeadRoll`` columns (its ``head_ypr``).
 
@@ -41,7 +45,7 @@ identity, ``(yaw, pitch, roll) = (HeadYaw, HeadPitch, HeadRoll)``.  Uncertain, h
   flip them.  Check with a recording of a known turn, nod and tilt;
 - units: Unreal's live stream divides degrees by 180 (``units=halfturn``); the Live Link Face CSVs we
   have (../shared/samples) hold radians: their eye yaw spans +-0.6, physiological only in radians
-  (+-35 deg), and ``data.expressions`` reads head angles as radians.  Default ``units=rad``;
+  (+-35 deg), and ``data.expressions`` reads head angles as radians.  Default ``head_units=rad``;
 - neutral: the angles are relative to the phone, so a subject not facing the camera squarely has an
   offset C: the captured orientation is M_t = C H_t, H_t the head's turn relative to the body.
   ``recenter=true`` takes the first frame as the rest pose (H_0 = I, so C = M_0) and feeds
@@ -49,24 +53,60 @@ identity, ``(yaw, pitch, roll) = (HeadYaw, HeadPitch, HeadRoll)``.  Uncertain, h
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from data.cli import run_cli
-from data.expressions import read_expressions
+from data.cli import REQUIRED, register_config, run_cli, to_dataclass
 from data.errors import InputError
+from data.expressions import read_expressions
 from data.files import load_npy, save_npy
 from models.checkpoint import load_model
 from models.head2neck import head_error_deg, predict_theta
 from models.joint_limits import within_limits
+from models.pretrained import default_checkpoint
 from models.rig import HeadNeckModel
 from models.rotations import ypr_to_matrix
 
 INPUT_FORMATS = ("auto", "matrix", "ypr", "csv")
 UNITS = {"rad": 1.0, "deg": np.pi / 180.0, "halfturn": np.pi}
+
+
+@dataclass
+class Head2NeckCli:
+    """``python -m motion.head2neck``: head orientations -> theta [T,8,3] (see the module docstring)."""
+
+    input: str = REQUIRED              # .npy [T,3,3] head orientations, .npy [T,3] yaw/pitch/roll, or a capture .csv
+    out: str = REQUIRED                # theta .npy [T,8,3], bone frames of ``rig``
+    checkpoint: str = "default"        # default (the shipped model) | a head2neck checkpoint from train.py
+    input_format: str = "auto"         # auto | matrix | ypr | csv
+    head_units: str = "rad"            # yaw/pitch/roll units: rad | deg | halfturn (Unreal's live values, 1 = 180 deg)
+    yaw_sign: float = 1.0              # flip HeadYaw/Pitch/Roll (mirrored capture, landscape phone): +1 or -1
+    pitch_sign: float = 1.0
+    roll_sign: float = 1.0
+    recenter: bool = False             # make the first frame the rest pose (orientations relative to it)
+    fps: float | None = None        # frame rate of a CSV without a time column
+    timecode_fps: float | None = None  # Live Link Face timecode rate, for takes under a second
+    rig: str | None = None          # rig file (python -m data.assets) whose bone frames theta is in; null = built-in
+    iterations: int = 3                # at most this many Gauss-Newton steps of the exact correction
+    threads: int = 1                   # enough for a capture; more threads only pay on an idle machine
+
+    def __post_init__(self) -> None:
+        if self.input_format not in INPUT_FORMATS:
+            raise ValueError(f"input_format={self.input_format}: expected one of {', '.join(INPUT_FORMATS)}")
+        if self.head_units not in UNITS:
+            raise ValueError(f"head_units={self.head_units}: expected one of {', '.join(UNITS)}")
+        for name in ("yaw_sign", "pitch_sign", "roll_sign"):
+            if float(getattr(self, name)) not in (1.0, -1.0):
+                raise ValueError(f"{name}={getattr(self, name)}: expected +1 or -1")
+        if self.iterations < 0:
+            raise ValueError(f"iterations={self.iterations}: expected a non-negative number of steps")
+
+
+register_config("head2neck_schema", Head2NeckCli)
 
 
 def check_rotations(matrices: np.ndarray, path: Path, tolerance: float = 1e-3) -> None:
@@ -127,10 +167,13 @@ def read_head_rotations(path: str | Path, input_format: str = "auto", units: str
 
 
 def load_head2neck(checkpoint: str | Path, rig_path: str | Path | None = None) -> tuple[torch.nn.Module, HeadNeckModel]:
-    """A head2neck model and its rig: ``rig_path``, or the rig the checkpoint was trained with."""
-    model, state = load_model(checkpoint, task="head2neck")
-    if rig_path is None:
-        rig_path = state.get("config", {}).get("rig")
+    """A head2neck model (``"default"``: the shipped one) and the rig ``rig_path`` (None: the built-in rig).
+
+    The model holds nothing of a rig (``models.head2neck``): it reads the rig's joint rest frames when it
+    runs, so any rig with HACK's 8-joint cervical chain serves."""
+    if str(checkpoint) == "default":
+        checkpoint = default_checkpoint("head2neck")
+    model, _ = load_model(checkpoint, task="head2neck")
     return model, HeadNeckModel.from_config(rig_path)
 
 
@@ -144,9 +187,11 @@ def recentered(head: torch.Tensor) -> torch.Tensor:
 
 def run(cfg: DictConfig) -> np.ndarray:
     """The CLI's work: returns theta [T,J,3] and writes it to ``cfg.out``."""
+    cfg = to_dataclass(cfg, Head2NeckCli, where="configs/head2neck.yaml")
     model, rig = load_head2neck(cfg.checkpoint, cfg.rig)
     signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
-    head, description = read_head_rotations(cfg.input, cfg.input_format, cfg.units, signs, cfg.fps, cfg.timecode_fps)
+    head, description = read_head_rotations(cfg.input, cfg.input_format, cfg.head_units, signs, cfg.fps,
+                                            cfg.timecode_fps)
     if cfg.recenter:
         head = recentered(head)
     theta = predict_theta(model, rig, head, int(cfg.iterations))
@@ -166,4 +211,4 @@ def run(cfg: DictConfig) -> np.ndarray:
 
 
 if __name__ == "__main__":
-    run_cli("head2neck", run)
+    run_cli("head2neck", run, doc=__doc__)

@@ -1,66 +1,140 @@
 """Training task: head orientation -> the 8 cervical joint rotations (``python train.py task=head2neck``).
 
-Data (``cfg.data.kind``):
-- ``synthetic`` (default): sequences of the anatomical prior (``data.cervical_prior``), one person
-  each; validation sequences come from another seed (``val_seed`` != ``seed``), so from new persons.
-  Every key of ``data`` is a PriorConfig field or one of ``SYNTHETIC_KEYS`` (else InputError).
-- ``theta_seq``: real theta sequences (``data.path``: a ``.npy`` ``[T,8,3]`` or a folder of them; the
-  mapping is per frame, so no frame rate); several files are split by file (``val_fraction`` of them,
-  chosen with ``split_seed``), a single file by time (its last ``val_fraction`` of frames).
+Config groups (structured: the dataclasses below and ``models.head2neck.Head2NeckConfig`` are the schemas
+and the defaults; the YAML files hold only what differs):
+- ``task``: :class:`Head2NeckTaskConfig` (``configs/task/head2neck.yaml``);
+- ``model``: ``models.head2neck.Head2NeckConfig`` (``configs/model/head2neck.yaml``);
+- ``data`` (``configs/data_task/head2neck_<data>.yaml``):
+  - ``data=synthetic`` (default), :class:`SyntheticData`: sequences of the in-vivo prior
+    (``data.cervical_prior``, its settings under ``data.prior``), one person each; validation sequences
+    come from another seed (``val_seed`` != ``seed``), so from new persons;
+  - ``data=theta_seq data.path=...``, :class:`ThetaSeqData`: the user's own theta sequences (a ``.npy``
+    ``[T,8,3]`` or a folder of them, HACK release layout: bone frames of ``rig``; per frame, so no frame
+    rate), alone or mixed with the prior: ``data.prior_weight`` is the share of every batch drawn from the
+    prior (0 = the files alone).  Several files are split by file (``val_fraction`` of them, chosen with
+    ``split_seed``), a single file by time (its last ``val_fraction`` of frames); validation is on the
+    held-out frames of the files only.
 Head orientations are the rig's forward kinematics of the poses (``cfg.rig``, built-in by default).
-Poses are handled in the joints' anatomical frames (``HeadNeckModel.to_anatomical``), where the limits
-and the prior are written; real sequences arrive in bone frames (the release's layout) and are converted.
+Poses are handled in the joints' anatomical frames (``HeadNeckModel.to_anatomical``), where the limits and
+the prior are written; real sequences arrive in bone frames and are converted.  The trained model holds
+nothing of the rig (``models.head2neck``): it reads the rig's rest frames when it runs.
 
-Loss per batch of frames (``configs/task/head2neck.yaml``)::
+Loss per batch of frames::
 
     mean_j |R_j - R_j*|^2 / 2  +  lambda_fk |H(theta) - H*|^2 / 2  +  lambda_rot E_rot  +  lambda_sim E_sim
 
 (``|R - R*|^2 / 2 = 2 (1 - cos angle)``, about angle^2 in radians^2; E_rot and E_sim from
 ``models.joint_limits``).  Evaluation: per-joint angular error (degrees) of the model after the exact
-correction, of the model's raw output, and of the two analytic baselines after the same correction,
-the head orientation error and the share of joints inside the limits.  The ROM split does not
-reproduce the head by itself; the uniform split does, but on the default prior it puts ~15% of the
-joints (in half the frames; built-in and real rig alike) outside their limits, which the correction
-clamps and redistributes.
+correction, of the model's raw output (with its own head error and share of joints inside the limits: the
+correction makes those hold for any output, so they are what shows the network learnt), and of the two
+analytic baselines after the same correction.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from data.cervical_prior import PriorConfig, head_rotations, load_theta_sequences, sample_sequences
-from data.cli import config_dataclass
+from data.cli import REQUIRED, register_config, to_dataclass
 from data.errors import InputError
 from data.splits import split_by_file
-from models.head2neck import build_model, chain_head_rotation, correct_to_head, head_error_deg, split_head_rotation
+from models.head2neck import (
+    Head2NeckConfig,
+    Head2NeckMLP,
+    build_model,
+    chain_head_rotation,
+    correct_to_head,
+    head_error_deg,
+    model_config,
+    split_head_rotation,
+)
 from models.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
 from models.rig import HeadNeckModel
 from models.rotations import axis_angle_to_matrix, relative_angle
 
-__all__ = ["Task", "build_model"]
+__all__ = ["Task", "build_model", "Head2NeckTaskConfig", "SyntheticData", "ThetaSeqData"]
 
 
-# The synthetic data section's own keys (configs/data/synthetic.yaml, configs/data_task/head2neck_synthetic.yaml);
-# its other keys are the generator's, the fields of PriorConfig.
-SYNTHETIC_KEYS = ("kind", "seed", "val_seed", "train_sequences", "val_sequences")
+@dataclass
+class Head2NeckTaskConfig:
+    """The loss and batches of the head2neck task."""
+
+    name: str = "head2neck"
+    batch_size: int = 1024           # frames per step, drawn from the training sequences
+    lambda_fk: float = 1.0           # head orientation consistency
+    lambda_rot: float = 1.0          # E_rot, the limits
+    lambda_sim: float = 1.0e-4       # E_sim pulls neighbours together, against the truth (C1-C2 vs O-C1): keep it small
+    correction_iterations: int = 3   # at most this many Gauss-Newton steps of the exact correction
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1 or self.correction_iterations < 0:
+            raise ValueError(f"batch_size={self.batch_size}, correction_iterations={self.correction_iterations}: "
+                             f"expected a batch of at least 1 frame and a non-negative number of steps")
+        for name in ("lambda_fk", "lambda_rot", "lambda_sim"):
+            if not float(getattr(self, name)) >= 0:
+                raise ValueError(f"{name}={getattr(self, name)}: expected a non-negative weight")
 
 
-def prior_config(data: DictConfig) -> PriorConfig:
-    """The generator settings of the synthetic ``cfg.data``; InputError for an unknown key, fewer than one
-    training or validation sequence, or ``val_seed == seed`` (the validation persons would be the
-    training persons)."""
-    where = "data (configs/data_task/head2neck_synthetic.yaml)"
-    values = OmegaConf.to_container(data, resolve=True)
-    for key in ("train_sequences", "val_sequences"):
-        if not int(values[key]) >= 1:
-            raise InputError(f"{where}: {key} is {values[key]}, expected at least 1")
-    if values["val_seed"] == values["seed"]:
-        raise InputError(f"{where}: val_seed equals seed ({values['seed']}): the validation persons would be the "
-                         f"training persons; choose another val_seed")
-    return config_dataclass(PriorConfig, values, where, other_keys=SYNTHETIC_KEYS)
+@dataclass
+class SyntheticData:
+    """``data=synthetic``: the in-vivo prior (``data.cervical_prior``)."""
+
+    kind: str = "synthetic"
+    train_sequences: int = 1024      # one new person each
+    val_sequences: int = 128
+    seed: int = 1
+    val_seed: int = 2                # validation persons: another seed
+    prior: PriorConfig = field(default_factory=PriorConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("train_sequences", "val_sequences"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} is {getattr(self, name)}, expected at least 1")
+        if self.val_seed == self.seed:
+            raise ValueError(f"val_seed equals seed ({self.seed}): the validation persons would be the training "
+                             f"persons; choose another val_seed")
+
+
+@dataclass
+class ThetaSeqData:
+    """``data=theta_seq``: real theta sequences, alone or mixed with the prior."""
+
+    kind: str = "theta_seq"
+    path: str = REQUIRED             # a .npy [T,8,3] (bone frames, axis-angle radians) or a folder of them
+    val_fraction: float = 0.2        # files held out (several files) or last frames held out (one file)
+    split_seed: int = 0              # which files are held out
+    prior_weight: float = 0.0        # share of each batch drawn from the prior; 0 = the files alone
+    prior_sequences: int = 1024      # prior sequences to draw batches from when prior_weight > 0
+    prior_seed: int = 1
+    prior: PriorConfig = field(default_factory=PriorConfig)
+
+    def __post_init__(self) -> None:
+        if not 0 <= float(self.prior_weight) < 1:
+            raise ValueError(f"prior_weight={self.prior_weight}: expected a share in [0, 1) (1 would ignore the "
+                             f"files; use data=synthetic)")
+        if int(self.prior_sequences) < 1:
+            raise ValueError(f"prior_sequences is {self.prior_sequences}, expected at least 1")
+
+
+register_config("head2neck_schema", Head2NeckTaskConfig, group="task")
+register_config("head2neck_synthetic_schema", SyntheticData, group="data_task")
+register_config("head2neck_theta_seq_schema", ThetaSeqData, group="data_task")
+
+DATA_FILES = {"synthetic": "configs/data_task/head2neck_synthetic.yaml",
+              "theta_seq": "configs/data_task/head2neck_theta_seq.yaml"}
+
+
+def data_config(data: DictConfig) -> SyntheticData | ThetaSeqData:
+    """The ``data`` section as its dataclass; InputError naming the section for a bad value."""
+    kind = data.get("kind")
+    if kind not in DATA_FILES:
+        raise InputError(f"data.kind={kind}: task head2neck trains on data=synthetic or data=theta_seq")
+    cls = SyntheticData if kind == "synthetic" else ThetaSeqData
+    return to_dataclass(data, cls, where=f"data ({DATA_FILES[kind]})")
 
 
 def split_sequences(sequences: list[np.ndarray], val_fraction: float, seed: int, path: str
@@ -79,48 +153,62 @@ def split_sequences(sequences: list[np.ndarray], val_fraction: float, seed: int,
     return train, val, f"{len(val)} of the {len(sequences)} sequences in {path}"
 
 
+def prior_frames(count: int, seed: int, config: PriorConfig) -> np.ndarray:
+    """Anatomical theta [count * T, J, 3] of ``count`` prior sequences."""
+    sequences = sample_sequences(count, seed, config)
+    return sequences.theta.reshape(-1, *sequences.theta.shape[2:])
+
+
 class Task:
     def __init__(self, cfg: DictConfig):
         self.cfg = cfg
+        self.task = to_dataclass(cfg.task, Head2NeckTaskConfig, where="task (configs/task/head2neck.yaml)")
+        self.data = data_config(cfg.data)
         self.rig = HeadNeckModel.from_config(cfg.rig)
-        self._model_config = {**OmegaConf.to_container(cfg.model, resolve=True),
-                              "rest_rotations": self.rig.anatomical_rest_rotations.tolist()}
-        self.model = build_model(self._model_config)
-        train, val, self.val_description = self._sequences(cfg.data)
+        self.model = Head2NeckMLP(to_dataclass(cfg.model, Head2NeckConfig,
+                                               where="model (configs/model/head2neck.yaml)"))
+        self.rest = self.rig.anatomical_rest_rotations
+        train, val, self.val_description = self._sequences()
         self.train = self._frames(np.concatenate(train))
         self.val = self._frames(np.concatenate(val))
+        self.prior = None
+        if isinstance(self.data, ThetaSeqData) and self.data.prior_weight > 0:
+            self.prior = self._frames(prior_frames(self.data.prior_sequences, self.data.prior_seed, self.data.prior))
         self._baselines: dict | None = None
 
     # ------------------------------------------------------------------ data
 
-    def _sequences(self, data: DictConfig) -> tuple[list[np.ndarray], list[np.ndarray], str]:
-        if data.kind == "synthetic":
-            config = prior_config(data)
-            train = sample_sequences(int(data.train_sequences), int(data.seed), config)
-            val = sample_sequences(int(data.val_sequences), int(data.val_seed), config)
+    def _sequences(self) -> tuple[list[np.ndarray], list[np.ndarray], str]:
+        data = self.data
+        if isinstance(data, SyntheticData):
+            train = prior_frames(data.train_sequences, data.seed, data.prior)
+            val = prior_frames(data.val_sequences, data.val_seed, data.prior)
             description = (f"{data.val_sequences} synthetic sequences of new persons (seed {data.val_seed}, "
-                           f"{config.seconds:g} s at {config.fps:g} fps)")
-            return [train.theta.reshape(-1, *train.theta.shape[2:])], \
-                [val.theta.reshape(-1, *val.theta.shape[2:])], description
-        if data.kind == "theta_seq":
-            sequences = [self.rig.to_anatomical(torch.as_tensor(s.theta)).numpy()  # release layout: bone frames
-                         for s in load_theta_sequences(data.path, self.rig.num_joints)]
-            return split_sequences(sequences, float(data.val_fraction), int(data.split_seed), str(data.path))
-        raise ValueError(f"task head2neck: unknown data kind '{data.kind}', expected synthetic or theta_seq")
+                           f"{data.prior.seconds:g} s at {data.prior.fps:g} fps)")
+            return [train], [val], description
+        sequences = [self.rig.to_anatomical(torch.as_tensor(s.theta)).numpy()  # release layout: bone frames
+                     for s in load_theta_sequences(data.path, self.rig.num_joints)]
+        return split_sequences(sequences, float(data.val_fraction), int(data.split_seed), str(data.path))
 
     def _frames(self, theta: np.ndarray) -> dict[str, torch.Tensor]:
         theta = torch.as_tensor(theta, dtype=torch.float32)
         return {"rotations": axis_angle_to_matrix(theta), "head": head_rotations(self.rig, theta)}
 
     def batch(self, step: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        index = torch.randint(len(self.train["head"]), (int(self.cfg.task.batch_size),), generator=generator)
-        return {name: value[index] for name, value in self.train.items()}
+        size = int(self.task.batch_size)
+        from_prior = 0 if self.prior is None else int(round(size * float(self.data.prior_weight)))
+        index = torch.randint(len(self.train["head"]), (size - from_prior,), generator=generator)
+        batch = {name: value[index] for name, value in self.train.items()}
+        if from_prior:
+            index = torch.randint(len(self.prior["head"]), (from_prior,), generator=generator)
+            batch = {name: torch.cat([value, self.prior[name][index]]) for name, value in batch.items()}
+        return batch
 
     # ------------------------------------------------------------------ loss
 
     def loss(self, batch: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, dict[str, float]]:
-        task = self.cfg.task
-        theta = self.model(batch["head"])
+        task = self.task
+        theta = self.model(batch["head"], self.rest)
         joint = 0.5 * ((axis_angle_to_matrix(theta) - batch["rotations"]) ** 2).sum((-1, -2)).mean()
         consistency = 0.5 * ((chain_head_rotation(theta, self.rig) - batch["head"]) ** 2).sum((-1, -2)).mean()
         e_rot = rotation_limit_energy(theta).mean()
@@ -135,48 +223,50 @@ class Task:
     @torch.no_grad()
     def evaluate(self, final: bool = False) -> dict[str, float]:
         head = self.val["head"]
-        iterations = int(self.cfg.task.correction_iterations)
-        raw = torch.cat([self.model(h) for h in head.split(8192)])
+        iterations = int(self.task.correction_iterations)
+        raw = torch.cat([self.model(h, self.rest) for h in head.split(8192)])
         rows = {"model": self._row(correct_to_head(raw, head, self.rig, iterations)), "model_raw": self._row(raw),
                 **self._baseline_rows()}
-        per_joint, head_max, inside = rows["model"]
+        per_joint, head_mean, head_max, inside = rows["model"]
         metrics = {"joint_err_deg": float(per_joint.mean()), "head_err_max_deg": head_max, "within_limits": inside}
         metrics.update({f"joint_err_deg_{n}": float(e) for n, e in zip(self.rig.joint_names, per_joint)})
-        for name in ("model_raw", "uniform", "rom"):
-            per_joint, head_max, inside = rows[name]
-            metrics.update({f"{name}_joint_err_deg": float(per_joint.mean()), f"{name}_head_err_max_deg": head_max,
-                            f"{name}_within_limits": inside})
+        for name in ("model_raw", "uniform", "rom", "invivo"):
+            per_joint, head_mean, head_max, inside = rows[name]
+            metrics.update({f"{name}_joint_err_deg": float(per_joint.mean()), f"{name}_head_err_mean_deg": head_mean,
+                            f"{name}_head_err_max_deg": head_max, f"{name}_within_limits": inside})
         if final:
             self._print_table(rows, len(head))
         return metrics
 
-    def _row(self, theta: torch.Tensor) -> tuple[torch.Tensor, float, float]:
-        """(per-joint angular error [J] degrees, max head error degrees, share within limits) on val."""
+    def _row(self, theta: torch.Tensor) -> tuple[torch.Tensor, float, float, float]:
+        """(per-joint angular error [J] degrees, mean and max head error degrees, share within limits) on val."""
         head, truth = self.val["head"], self.val["rotations"]
         per_joint = torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), truth)).mean(0)
-        return per_joint, float(head_error_deg(theta, head, self.rig).max()), float(within_limits(theta).float().mean())
+        error = head_error_deg(theta, head, self.rig)
+        return per_joint, float(error.mean()), float(error.max()), float(within_limits(theta).float().mean())
 
     def _baseline_rows(self) -> dict[str, tuple]:
-        """The uniform and ROM splits (with the same correction) on val: computed once, they do not learn."""
+        """The uniform, ROM and in-vivo splits (with the same correction) on val: computed once, they do not learn."""
         if self._baselines is None:
             head = self.val["head"]
-            rest = self.rig.anatomical_rest_rotations
-            iterations = int(self.cfg.task.correction_iterations)
-            self._baselines = {split: self._row(correct_to_head(split_head_rotation(head, rest, split), head,
+            iterations = int(self.task.correction_iterations)
+            self._baselines = {split: self._row(correct_to_head(split_head_rotation(head, self.rest, split), head,
                                                                 self.rig, iterations))
-                               for split in ("uniform", "rom")}
+                               for split in ("uniform", "rom", "invivo")}
         return self._baselines
 
     def _print_table(self, rows: dict, frames: int) -> None:
         labels = {"model": "MLP + correction", "model_raw": "MLP (raw output)",
-                  "uniform": "uniform split + correction", "rom": "ROM split + correction"}
+                  "uniform": "uniform split + correction", "rom": "ROM split + correction",
+                  "invivo": "in-vivo split + correction"}
         names = self.rig.joint_names
         print(f"\nhead2neck: per-joint angular error (deg) on {frames} held-out frames ({self.val_description})")
-        print(f"{'method':27s}{'mean':>7s}" + "".join(f"{n:>7s}" for n in names) + f"{'head max':>10s}{'in limits':>11s}")
+        print(f"{'method':27s}{'mean':>7s}" + "".join(f"{n:>7s}" for n in names)
+              + f"{'head mean':>10s}{'head max':>10s}{'in limits':>11s}")
         for key, label in labels.items():
-            per_joint, head_max, inside = rows[key]
+            per_joint, head_mean, head_max, inside = rows[key]
             print(f"{label:27s}{float(per_joint.mean()):7.2f}" + "".join(f"{float(e):7.2f}" for e in per_joint)
-                  + f"{head_max:10.1e}{inside:11.4f}")
+                  + f"{head_mean:10.1e}{head_max:10.1e}{inside:11.4f}")
 
     def model_config(self) -> dict:
-        return self._model_config
+        return model_config(self.model)

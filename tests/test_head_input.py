@@ -7,7 +7,6 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from data.errors import InputError
-
 from data.files import save_npy
 from motion.head2neck import read_head_rotations, recentered
 

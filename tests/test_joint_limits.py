@@ -5,8 +5,14 @@ import math
 
 import torch
 
-from models.joint_limits import (adjacent_similarity_energy, clamp_to_limits, euler_limits, range_of_motion_shares,
-                                 rotation_limit_energy, within_limits)
+from models.joint_limits import (
+    adjacent_similarity_energy,
+    clamp_to_limits,
+    euler_limits,
+    range_of_motion_shares,
+    rotation_limit_energy,
+    within_limits,
+)
 from models.rotations import axis_angle_to_euler, euler_to_axis_angle, euler_to_matrix, matrix_to_euler
 
 
