@@ -63,22 +63,13 @@ from models.rig import HeadNeckModel
 from motion.head2neck import head_rotations_from_ypr, load_head2neck, recentered
 from motion.preview import Panel, anatomical_degrees, write_preview
 from motion.retarget import default_gains, retarget_params
-from motion.swallow import SwallowConfig, insert_swallows, read_template
+from motion.swallow import PlaybackConfig, insert_swallows, read_template
 
 MESH_FORMATS = ("ply", "obj")
 EXPORTS = ("glb", "mp4")
 TAKE_SUFFIXES = (".csv", ".npy")
 # Expressions no ARKit capture has (ICT's cheekRaiser_L/R): their absence is a note, not an error.
 NEVER_IN_ARKIT = tuple(name for name in EXPRESSION_NAMES if arkit_name(name) is None)
-
-
-@dataclass
-class SwallowPlayback:
-    """How an inserted swallow blends into the track (``motion.swallow``'s playback settings)."""
-
-    fade_seconds: float = 0.2         # > 0: raised-cosine cross-fade at both ends of an insert
-    blend: str = "replace"            # replace (cross-fade the track's own motion away) | add
-    rest_window_seconds: float = 0.5
 
 
 @dataclass
@@ -100,7 +91,7 @@ class InferConfig:
     swallow_at: list[float] = field(default_factory=list)  # onset times (s)
     swallow_duration_scale: Any = 1.0  # one value or one per onset
     swallow_amplitude_scale: Any = 1.0
-    swallow_playback: SwallowPlayback = field(default_factory=SwallowPlayback)
+    swallow_playback: PlaybackConfig = field(default_factory=PlaybackConfig)
     # head rotation -> cervical theta (conventions in motion/head2neck.py)
     head2neck: str = "default"         # default (shipped) | none (the neck rests) | a checkpoint
     head_units: str = "rad"            # rad | deg | halfturn
@@ -247,8 +238,7 @@ def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=p
         onsets = [SWALLOW_ONSET]
     if template_path and onsets:
         template = read_template(template_path)
-        playback = to_dataclass(OmegaConf.structured(cfg.swallow_playback), where="swallow_playback")
-        playback = SwallowConfig(**{k: getattr(playback, k) for k in ("fade_seconds", "blend", "rest_window_seconds")})
+        playback = cfg.swallow_playback
         try:
             tau = insert_swallows(tau, uniform.time, template, onsets, as_list(cfg.swallow_duration_scale),
                                   as_list(cfg.swallow_amplitude_scale), playback)
@@ -418,7 +408,7 @@ _WORKER: dict = {}
 
 
 def _init_worker(cfg_dict: dict) -> None:
-    cfg = InferConfig(**{**cfg_dict, "swallow_playback": SwallowPlayback(**cfg_dict["swallow_playback"])})
+    cfg = InferConfig(**{**cfg_dict, "swallow_playback": PlaybackConfig(**cfg_dict["swallow_playback"])})
     torch.set_num_threads(max(1, int(cfg.threads)))
     _WORKER["cfg"] = cfg
     _WORKER["models"] = load_models(cfg, announce=lambda message: None)

@@ -107,7 +107,26 @@ def to_dataclass(section, cls: type | None = None, where: str = "config"):
         raise InputError(f"{where}: {e}") from None
     if not dataclasses.is_dataclass(obj):
         raise TypeError(f"{where}: not a structured config section (give cls=...)")
+    unknown = unknown_keys(merged, type(obj))
+    if unknown:  # keys forced in with '+key=...' slip past the schema
+        raise InputError(f"{where}: unknown keys {unknown}; known: {sorted(f.name for f in dataclasses.fields(obj))}")
     return obj
+
+
+def unknown_keys(section, cls: type, prefix: str = "") -> list[str]:
+    """Dotted keys of ``section`` that are not fields of the dataclass ``cls`` (nested dataclasses too)."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    out = []
+    for key in section.keys():
+        if key not in fields:
+            out.append(f"{prefix}{key}")
+            continue
+        value = section[key]
+        factory = fields[key].default_factory
+        nested = factory() if factory is not dataclasses.MISSING else None
+        if isinstance(value, DictConfig) and dataclasses.is_dataclass(nested):
+            out.extend(unknown_keys(value, type(nested), f"{prefix}{key}."))
+    return out
 
 
 def run_cli(config_name: str, run: Callable, argv: Sequence[str] | None = None, doc: str | None = None) -> None:
