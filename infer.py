@@ -12,8 +12,9 @@ HACK-named CSV, header-less 55-column CSV, or ``.npy`` with ``fps=``), resamples
 
 - tau: the expression -> larynx transformer streamed over psi (``checkpoint``: ``default`` = the shipped
   model, ``none`` = the larynx rests, or a train.py checkpoint);
-- swallows: a swallow template (``swallow_template``; ``default`` = the shipped one) inserted at
-  ``swallow_at`` seconds, blended as ``swallow_playback`` says;
+- swallows: a swallow template (``swallow_template``: ``default`` = the shipped one, or a template
+  CSV from ``python -m motion.swallow``) inserted at ``swallow_at`` seconds (the demo take: at 6.2 s),
+  blended as ``swallow_playback`` says;
 - theta: the recording's head rotation (``HeadYaw, HeadPitch, HeadRoll``; conventions and options in
   ``motion/head2neck.py``) through the head -> cervical spine model (``head2neck``: ``default``,
   ``none`` or a checkpoint) in the bone frames of the rig; without recorded head rotation the neck rests.
@@ -47,7 +48,7 @@ from tqdm import tqdm
 
 from data.characters import GIRAFFE_TAG, load_character
 from data.cli import as_list, register_config, run_cli, to_dataclass
-from data.demo_take import SWALLOW_ONSET, demo_take
+from data.demo_take import DEMO_SOURCE, SWALLOW_ONSET, demo_take
 from data.errors import InputError
 from data.expressions import EXPRESSION_NAMES, ExpressionTrack, arkit_name, read_expressions
 from data.files import write_csv
@@ -58,7 +59,7 @@ from data.plots import figure, save_figure
 from models.checkpoint import load_model
 from models.head2neck import predict_theta
 from models.larynx_transformer import predict_tau
-from models.pretrained import default_checkpoint, read_manifest
+from models.pretrained import default_checkpoint, pretrained_path, read_manifest
 from models.rig import HeadNeckModel
 from motion.head2neck import head_rotations_from_ypr, load_head2neck, recentered
 from motion.preview import Panel, anatomical_degrees, write_preview
@@ -87,8 +88,8 @@ class InferConfig:
     subject: str | None = None         # a training subject's style; null = the average style
     eta: float = 1.0                   # larynx size
     # swallows
-    swallow_template: str | None = None  # template CSV from python -m motion.swallow
-    swallow_at: list[float] = field(default_factory=list)  # onset times (s)
+    swallow_template: str = "default"  # default (shipped) | a template CSV from python -m motion.swallow
+    swallow_at: list[float] = field(default_factory=list)  # onset times (s); the demo take swallows at 6.2 s
     swallow_duration_scale: Any = 1.0  # one value or one per onset
     swallow_amplitude_scale: Any = 1.0
     swallow_playback: PlaybackConfig = field(default_factory=PlaybackConfig)
@@ -117,9 +118,7 @@ class InferConfig:
             raise ValueError(f"export={unknown}: expected some of {', '.join(EXPORTS)}")
         if self.workers < 1:
             raise ValueError(f"workers={self.workers}: expected at least 1")
-        if bool(self.swallow_at) and not self.swallow_template and self.expressions is not None:
-            raise ValueError("swallow_at needs swallow_template=template.csv (from python -m motion.swallow)")
-        if self.swallow_template and not self.swallow_at:
+        if self.swallow_template != "default" and not self.swallow_at:
             raise ValueError(f"swallow_template={self.swallow_template} needs swallow_at=[t1,...] (seconds)")
 
 
@@ -233,11 +232,11 @@ def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=p
         tau = np.zeros(len(uniform))
     seconds["larynx"] = time.perf_counter() - started
     onsets = [float(t) for t in as_list(cfg.swallow_at)]
-    template_path = cfg.swallow_template
-    if track.source == "built-in demo take" and not onsets and template_path:
+    if track.source == DEMO_SOURCE and not onsets:
         onsets = [SWALLOW_ONSET]
-    if template_path and onsets:
-        template = read_template(template_path)
+    if onsets:
+        path = pretrained_path("swallow_template") if cfg.swallow_template == "default" else cfg.swallow_template
+        template = read_template(path)
         playback = cfg.swallow_playback
         try:
             tau = insert_swallows(tau, uniform.time, template, onsets, as_list(cfg.swallow_duration_scale),

@@ -16,6 +16,7 @@ import numpy as np
 from data.expressions import EXPRESSION_NAMES, ExpressionTrack
 
 DURATION = 12.0
+DEMO_SOURCE = "built-in demo take"  # the track's source, as a file's path names a capture
 SWALLOW_ONSET = 6.2
 PAUSE = (6.0, 8.0)  # seconds without speech: the swallow's window
 
@@ -65,4 +66,4 @@ def demo_take(fps: float = 30.0, seed: int = 0) -> ExpressionTrack:
     head[:, 1] = np.radians(20.0) * _bump(time, 8.0, 9.5)    # pitch: a nod
     head[:, 2] = np.radians(12.0) * _bump(time, 9.5, 12.0)   # roll: a tilt to the right shoulder
     head += np.radians(0.3) * np.sin(2 * np.pi * 0.7 * time)[:, None] * rng.normal(size=3)  # sway
-    return ExpressionTrack(psi.astype(np.float32), time, float(fps), head, [], "built-in demo take")
+    return ExpressionTrack(psi.astype(np.float32), time, float(fps), head, [], DEMO_SOURCE)

@@ -27,7 +27,8 @@ from models.checkpoint import load_checkpoint, load_model, save_checkpoint
 PRETRAINED = Path(__file__).resolve().parent / "pretrained"
 MANIFEST = PRETRAINED / "manifest.json"
 # The default model of each task, used by infer.py when no checkpoint is given.
-DEFAULTS = {"larynx_transformer": "larynx_transformer", "head2neck": "head2neck"}
+DEFAULTS = {"larynx_transformer": "larynx_transformer", "head2neck": "head2neck",
+            "swallow_template": "swallow_template"}
 
 
 def sha256(path: str | os.PathLike) -> str:
@@ -99,6 +100,19 @@ def ship(run_dir: str | os.PathLike, name: str, command: str, checkpoint: str = 
     manifest[name] = {"file": path.name, "task": state["task"], "sha256": sha256(path), "bytes": path.stat().st_size,
                       "command": command, "commit": git_commit(), "eval": evaluation,
                       "trained_on": "built-in procedural rig and synthetic data (no third-party data)"}
+    write_text(MANIFEST, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    return manifest[name]
+
+
+def ship_file(path: str | os.PathLike, name: str, task: str, command: str, evaluation: dict) -> dict:
+    """Enter a file already under ``models/pretrained/`` (e.g. the swallow template) in the manifest."""
+    path = Path(path)
+    if path.parent.resolve() != PRETRAINED.resolve():
+        raise InputError(f"{path}: shipped files live in {PRETRAINED}")
+    manifest = read_manifest()
+    manifest[name] = {"file": path.name, "task": task, "sha256": sha256(path), "bytes": path.stat().st_size,
+                      "command": command, "commit": git_commit(), "eval": evaluation,
+                      "trained_on": "synthetic data from the project's own generators (no third-party data)"}
     write_text(MANIFEST, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
     return manifest[name]
 
