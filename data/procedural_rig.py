@@ -260,9 +260,11 @@ def larynx_maps(size: int = LARYNX_MAP_SIZE) -> np.ndarray:
         dv = (v - v0) / height
         du = (u - 0.5) / (width * (1.0 + 0.35 * np.clip(dv, -1, 1)))  # wider towards the top: a V
         body = np.exp(-0.5 * (du**2 + dv**2) ** 1.6)
-        prominence = np.exp(-0.5 * ((u - 0.5) / (0.35 * width)) ** 2 - 0.5 * ((v - v0 - 0.3 * height) / (0.6 * height)) ** 2)
+        prominence = np.exp(-0.5 * ((u - 0.5) / (0.35 * width)) ** 2
+                            - 0.5 * ((v - v0 - 0.3 * height) / (0.6 * height)) ** 2)
         image = peak * (0.75 * body + 0.25 * prominence)
-        image -= notch * np.exp(-0.5 * ((u - 0.5) / (0.12 * width)) ** 2 - 0.5 * ((v - v0 - height) / (0.25 * height)) ** 2)
+        image -= notch * np.exp(-0.5 * ((u - 0.5) / (0.12 * width)) ** 2
+                                - 0.5 * ((v - v0 - height) / (0.25 * height)) ** 2)
         # Compact support as the release's map, continuous at its edge.
         return np.clip((image - 0.02 * peak) / 0.98, 0.0, 1.0)
 

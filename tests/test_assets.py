@@ -7,12 +7,12 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from release_layout import write_release
 
 from data.assets import RigData, convert
 from data.errors import InputError
 from data.mesh_io import read_obj, triangulate, write_obj, write_ply
 from models.rig import HeadNeckModel
-from release_layout import write_release
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +56,8 @@ def broken_copy(release, tmp_path, edit):
     (lambda m, i: (m / "bones_neutral.json").write_text("{not json"), r"bones_neutral\.json: malformed JSON"),
     (lambda m, i: (m / "bones_neutral.json").write_text(json.dumps({"c7t1": {}})),
      r"bones_neutral\.json: bones \['c7t1'\], expected"),
-    (lambda m, i: np.save(m / "weight_map_smooth.npy", np.ones((7, 3))), r"weight_map_smooth\.npy: shape \(7, 3\), expected \[8,"),
+    (lambda m, i: np.save(m / "weight_map_smooth.npy", np.ones((7, 3))),
+     r"weight_map_smooth\.npy: shape \(7, 3\), expected \[8,"),
     (lambda m, i: (m / "Lc_mid.png").write_bytes(b"not a png"), r"Lc_mid\.png: not a readable image"),
     (lambda m, i: (m / "ts_larynx.npy").unlink(), r"ts_larynx\.npy: missing"),
     (lambda m, i: (i / "jawOpen.obj").unlink(), r"jawOpen\.obj: missing \(ICT-FaceKit expression 'jawOpen'\)"),
@@ -91,7 +92,8 @@ def test_truncated_rig_file_is_named(builtin_rig, tmp_path, keep):
 
 def test_obj_round_trip(builtin_rig, tmp_path):
     vertices = builtin_rig(torch.full((1, 8, 3), 0.05))[0].numpy()
-    write_obj(tmp_path / "posed.obj", vertices, builtin_rig.faces.numpy(), builtin_rig.rig.uv_coords, builtin_rig.rig.faces_uv)
+    write_obj(tmp_path / "posed.obj", vertices, builtin_rig.faces.numpy(), builtin_rig.rig.uv_coords,
+              builtin_rig.rig.faces_uv)
     mesh = read_obj(tmp_path / "posed.obj")
     assert np.abs(mesh.vertices - vertices).max() < 2e-6
     np.testing.assert_array_equal(mesh.faces, builtin_rig.faces.numpy())

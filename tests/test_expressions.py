@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from data.expressions import EXPRESSION_NAMES, read_expressions
 from data.errors import InputError
+from data.expressions import EXPRESSION_NAMES, read_expressions
 
 K = {name: k for k, name in enumerate(EXPRESSION_NAMES)}
 

@@ -5,13 +5,9 @@ import numpy as np
 import pytest
 
 from data.cli import as_list
-
 from data.errors import InputError
-
 from data.files import atomic_path, save_npy, write_csv
-
 from data.tables import CsvTable
-
 from data.tau_track import read_tau_track
 
 
@@ -58,7 +54,8 @@ def test_tracker_csv_without_calibration_says_so(tmp_path):
 
 def test_rate_from_the_caller_only_where_the_file_has_none(tmp_path):
     (tmp_path / "frames.csv").write_text("frame,tau\n0,0\n1,0.1\n2,0.2\n")
-    with pytest.raises(InputError, match=r"frames\.csv: column 'frame' without a 'time' or 'fps' column; give track_fps="):
+    with pytest.raises(InputError,
+                       match=r"frames\.csv: column 'frame' without a 'time' or 'fps' column; give track_fps="):
         read_tau_track(tmp_path / "frames.csv", fps_key="track_fps")
     np.testing.assert_allclose(read_tau_track(tmp_path / "frames.csv", fps=20).time, [0.0, 0.05, 0.1])
     save_npy(tmp_path / "t.npy", np.zeros(4))
