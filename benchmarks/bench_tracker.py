@@ -1,20 +1,26 @@
-"""Larynx tracker and normal-map renderer: speed and accuracy on synthetic sequences.
+"""Larynx tracker and normal-map renderer: speed, and accuracy on synthetic sequences per condition.
 
-    python benchmarks/bench_tracker.py [--threads 1,2] [--seeds 4] [--frames 150] [--rig rig.npz]
+    python benchmarks/bench_tracker.py [--rig /tmp/hack_rig.npz] [--threads 1] [--frames 240] [--seeds 1]
+        [--sections speed,slide,conditions,ablations]
 
-Prints, for each thread count (torch and OpenCV; the 2 cores are shared, so compare runs taken
-together):
-- renderer frames/s (256x256 neck view, batches of 32 frames with head motion and tau), with the rig's
-  forward pass included and without it;
-- tracker frames/s on 256x256 decoded frames with the search band (the target is >= 300), and the
-  whole per-frame path from 8-bit RGB (decode + validation + tracking);
-- the larynx slide on noise-free renders (head still, tau -0.03..0.06 in 13 steps, tracked as a
-  sequence): tracked rise over the larynx point's (slope of a line fit, and per frame) and the error;
-- accuracy over ``--seeds`` sequences (noise 0.05, 3 degrees of head motion, swallows): median / p95
-  / max error in pixels of the tracker, of ablations (no match window; no column high-pass; no
-  low-pass; the rest render as the kernel instead of the larynx's perturbation; the former matching:
-  the rest render, an 81 px row high-pass alone, no window), with temporal smoothing, and of the
-  baseline (integer arg-max of the raw correlation over the whole frame).
+Sequences (``data.normal_sequences``): 256x256 at 0.08 cm/px, 30 fps, noise 0.05, 8-bit quantised, swallows
+(40 per minute), speech-like tau motion; per condition head motion (degrees per anatomical axis), the face
+replaying a real recording (the Live Link Face samples in ``../shared/samples/livelinkface``, the HACK
+release's ``bsw_list.npy`` at 30 fps; conditions whose recording is absent are skipped), perspective, blur.
+
+Figures:
+- speed: renderer frames/s (batches of 32 posed frames, the rig's forward pass included and not); tracker
+  frames/s on decoded 256x256 frames without and with the neck's motion (compensation included; the
+  target is >= 300), the whole path from 8-bit RGB, and the raw-correlation baseline.
+- slide: noise-free renders, head still, tau -0.03..0.06 in 13 steps: the tracked rise over the larynx
+  point's (slope of a line fit) and the error.
+- conditions: per condition and seed, the R^2 of tau fitted linearly from the rise in pixels: of the true
+  image position of the larynx point (the ceiling of any tracker of the image position), of the tracker's
+  ``tau_px`` without compensation (raw) and with it (relative to the neck), of the tracker as it was
+  before issue 16 (window centred on the kernel, low-pass 3 px, no neck), and of the baseline (integer
+  arg-max of the raw correlation over the whole frame); the median error of the raw position (px).
+- ablations (on the talking-and-moving conditions): without the window's calibration, low-pass 3 px,
+  without the neck following the band, without the jaw's patch.
 """
 from __future__ import annotations
 
@@ -31,41 +37,56 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from data.normal_sequences import SequenceConfig, head_motion, make_sequence  # noqa: E402
-from data.normals import encode_normals, stored_to_unit
-from data.render import NeckRenderer, render_normals
+from timing import frames_per_second  # noqa: E402
+
+from data.normal_sequences import SequenceConfig, head_motion, make_sequence, tau_r2  # noqa: E402
+from data.normals import encode_normals, stored_to_unit  # noqa: E402
+from data.render import NeckRenderer, render_normals  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
-from motion.track import (TrackerConfig, check_normal_map, decode_frame, raw_correlation_argmax,  # noqa: E402
-                          rig_kernel, track_frames)
+from motion.track import (  # noqa: E402
+    BandpassConfig,
+    NeckModel,
+    TrackerConfig,
+    calibrate_window,
+    check_normal_map,
+    decode_frame,
+    raw_correlation_argmax,
+    rig_kernel,
+    track_sequence,
+)
+from motion.track.kernel import with_window  # noqa: E402
+
+SHARED = REPO.parent / "shared"
+LIVELINK = SHARED / "samples" / "livelinkface"
+BSW = SHARED / "assets" / "HACK-Model" / "data" / "bsw_list.npy"
+
+# name: (SequenceConfig overrides); talking conditions name their recording.
+CONDITIONS = {
+    "still head": {"head_motion_deg": 0.0},
+    "head motion 3 deg": {"head_motion_deg": 3.0},
+    "head motion 6 deg": {"head_motion_deg": 6.0},
+    "talking (facial.csv), 6 deg": {"head_motion_deg": 6.0, "expressions": str(LIVELINK / "facial.csv")},
+    "talking (apfel.csv), 6 deg": {"head_motion_deg": 6.0, "expressions": str(LIVELINK / "apfel.csv")},
+    "talking (bsw_list.npy), 6 deg": {"head_motion_deg": 6.0, "expressions": str(BSW), "expressions_fps": 30.0},
+    "talking (facial.csv), 15 deg": {"head_motion_deg": 15.0, "expressions": str(LIVELINK / "facial.csv")},
+    "talking (bsw_list.npy), 15 deg": {"head_motion_deg": 15.0, "expressions": str(BSW), "expressions_fps": 30.0},
+    "talking (facial.csv), 6 deg, perspective 50 cm": {"head_motion_deg": 6.0, "perspective": True,
+                                                        "expressions": str(LIVELINK / "facial.csv")},
+    "talking (facial.csv), 6 deg, blur 1 px": {"head_motion_deg": 6.0, "blur_px": 1.0,
+                                                "expressions": str(LIVELINK / "facial.csv")},
+}
+BASE = {"frames": 240, "noise": 0.05, "quantize_8bit": True, "swallows_per_minute": 40.0}
 
 
-def best_of(run, repeats: int) -> float:
-    """Shortest of ``repeats`` timings (s): the machine is shared, the minimum is the least disturbed."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return min(times)
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--threads", default="1,2", help="thread counts to time, comma separated")
-    parser.add_argument("--seeds", type=int, default=4)
-    parser.add_argument("--frames", type=int, default=150)
-    parser.add_argument("--rig", help="rig file from python -m data.assets (default: the built-in rig)")
-    args = parser.parse_args()
-    rig = HeadNeckModel.from_config(args.rig)
-    print(f"rig: {rig.rig.source} ({rig.num_vertices} vertices)")
+def speed(rig, kernel, neck, threads: list[int]) -> None:
     renderer = NeckRenderer(rig)
-    kernel = rig_kernel(rig)
-    sequence = make_sequence(rig, SequenceConfig(frames=300, swallows_per_minute=8.0), seed=0)
+    sequence = make_sequence(rig, SequenceConfig(frames=150, swallows_per_minute=8.0, quantize_8bit=True), seed=0)
     frames = list(sequence.normals)
+    init = tuple(sequence.larynx_px[0])
     encoded = [np.rint(encode_normals(n) * 255).astype(np.uint8) for n in frames]
     batch = 32
-    anatomical = torch.tensor(head_motion(batch, 30.0, 0, 3.0, 0.3, rig.num_joints), dtype=torch.float32)
-    theta = rig.from_anatomical(anatomical)
+    theta = rig.from_anatomical(torch.tensor(head_motion(batch, 30.0, 0, 3.0, 0.3, rig.num_joints),
+                                             dtype=torch.float32))
     tau = torch.linspace(-0.02, 0.06, batch)
     with torch.no_grad():
         vertices = rig(theta, tau=tau)
@@ -76,69 +97,128 @@ def main() -> None:
             normals = decode_frame(stored_to_unit(image)[0], False)
             check_normal_map(normals, f"frame {i}")
             decoded.append(normals)
-        track_frames(decoded, kernel)
+        track_sequence(decoded, kernel, init=init, neck=neck)
 
-    for threads in (int(t) for t in str(args.threads).split(",")):
-        torch.set_num_threads(threads)
-        cv2.setNumThreads(threads)
-        print(f"--- {threads} thread(s)")
-        renderer(theta[:4], tau=tau[:4])
-        full = best_of(lambda: renderer(theta, tau=tau), 3)
-        raster = best_of(lambda: render_normals(vertices, renderer.faces, renderer.camera), 3)
-        print(f"renderer 256x256: {batch / full:.0f} frames/s with the rig's forward pass "
-              f"({60 * batch / full:.0f} frames per minute), {batch / raster:.0f} frames/s rasterising posed meshes")
-        track_frames(frames[:10], kernel)
-        seconds = best_of(lambda: track_frames(frames, kernel), 3)
-        print(f"tracker 256x256, band +-{TrackerConfig().band_rows} rows +-{TrackerConfig().band_cols} cols: "
-              f"{len(frames) / seconds:.0f} frames/s (target >= 300)")
-        seconds = best_of(from_bytes, 2)
-        print(f"tracker from 8-bit RGB frames (decode + validation + tracking): {len(frames) / seconds:.0f} frames/s")
-        full_frame = best_of(lambda: [raw_correlation_argmax(n, kernel) for n in frames[:60]], 2)
-        print(f"baseline (raw correlation over the whole frame): {60 / full_frame:.0f} frames/s")
+    for count in threads:
+        torch.set_num_threads(count)
+        cv2.setNumThreads(count)
+        print(f"--- {count} thread(s)")
+        full, _ = frames_per_second(lambda: renderer(theta, tau=tau), batch, 3, warmup=1)
+        raster, _ = frames_per_second(lambda: render_normals(vertices, renderer.faces, renderer.camera), batch, 3, 1)
+        print(f"renderer 256x256: {full:.0f} frames/s with the rig's forward pass, {raster:.0f} frames/s "
+              f"rasterising posed meshes")
+        plain, plain_cpu = frames_per_second(lambda: track_sequence(frames, kernel, init=init), len(frames), 3)
+        necked, necked_cpu = frames_per_second(lambda: track_sequence(frames, kernel, init=init, neck=neck),
+                                               len(frames), 3)
+        print(f"tracker 256x256: {plain:.0f} frames/s ({plain_cpu:.0f} per CPU second) without the neck, "
+              f"{necked:.0f} ({necked_cpu:.0f}) with the neck's motion and compensation (target >= 300)")
+        whole, _ = frames_per_second(from_bytes, len(frames), 2, warmup=1)
+        print(f"tracker from 8-bit RGB frames (decode + validation + tracking with the neck): {whole:.0f} frames/s")
+        base, _ = frames_per_second(lambda: [raw_correlation_argmax(n, kernel) for n in frames[:60]], 60, 2, 1)
+        print(f"baseline (raw correlation over the whole frame): {base:.0f} frames/s")
 
-    # ------------------------------------------------------------------ accuracy
-    default = TrackerConfig()
-    rest_render = dataclasses.replace(kernel, background=None)
-    variants = {"tracker (default)": (kernel, default),
-                "no match window": (kernel, dataclasses.replace(default, window_sigma_x_px=0.0)),
-                "no column high-pass": (kernel, dataclasses.replace(default, column_highpass_px=0)),
-                "no low-pass": (kernel, dataclasses.replace(default, lowpass_sigma_px=0.0)),
-                "rest render as kernel": (rest_render, default),
-                "former matching": (rest_render, dataclasses.replace(default, lowpass_sigma_px=0.0, row_highpass_px=81,
-                                                                     column_highpass_px=0, window_sigma_x_px=0.0)),
-                "smoothing sigma 1 frame": (kernel, dataclasses.replace(default, smooth_frames=1.0)),
-                "smoothing sigma 2 frames": (kernel, dataclasses.replace(default, smooth_frames=2.0))}
 
-    slide_tau = torch.linspace(-0.03, 0.06, 13)
-    render, truth = renderer.render_with_truth(rig.neutral(len(slide_tau)), tau=slide_tau)
+def slide(rig, kernel) -> None:
+    renderer = NeckRenderer(rig)
+    tau = torch.linspace(-0.03, 0.06, 13)
+    render, truth = renderer.render_with_truth(rig.neutral(len(tau)), tau=tau)
     truth = truth.numpy().astype(np.float64)
-    rest = int(torch.argmin(slide_tau.abs()))
+    rest = int(torch.argmin(tau.abs()))
     true_rise = truth[rest, 1] - truth[:, 1]
-    moved = np.abs(true_rise) > 1.0
     print("larynx slide, noise-free, head still, tau -0.03..0.06 (tracked rise / the larynx point's):")
-    for name in ("tracker (default)", "no match window", "no column high-pass", "rest render as kernel",
-                 "former matching"):
-        track = track_frames(list(render.normals.numpy()), *variants[name])
+    centred = with_window(kernel, 0, 14)
+    for name, variant in (("tracker (calibrated window)", kernel), ("window centred, 20x14", centred)):
+        track = track_sequence(list(render.normals.numpy()), variant)
         rise = track.y[rest] - track.y
-        per_frame = rise[moved] / true_rise[moved]
         err = np.hypot(track.x - truth[:, 0], track.y - truth[:, 1])
-        print(f"  {name:26s} slope {np.polyfit(true_rise, rise, 1)[0]:.3f}  per frame {per_frame.min():.2f}.."
-              f"{per_frame.max():.2f}  error median {np.median(err):.2f}  max {err.max():.2f} px")
+        print(f"  {name:30s} slope {np.polyfit(true_rise, rise, 1)[0]:.3f}  error median {np.median(err):.2f} "
+              f"max {err.max():.2f} px")
 
-    errors: dict[str, list] = {name: [] for name in [*variants, "baseline raw arg-max"]}
-    config = SequenceConfig(frames=args.frames, noise=0.05, head_motion_deg=3.0, swallows_per_minute=20.0)
-    for seed in range(args.seeds):
-        seq = make_sequence(rig, config, seed=100 + seed)
-        for name, (variant_kernel, tracker_config) in variants.items():
-            track = track_frames(seq.normals, variant_kernel, tracker_config)
-            errors[name].append(np.hypot(track.x - seq.larynx_px[:, 0], track.y - seq.larynx_px[:, 1]))
-        base = np.array([raw_correlation_argmax(n, kernel) for n in seq.normals])
-        errors["baseline raw arg-max"].append(np.hypot(*(base - seq.larynx_px).T))
-        print(f"  seed {100 + seed}: tau {seq.tau.min():+.3f}..{seq.tau.max():+.3f}, eta {seq.eta:.2f}")
-    print(f"accuracy over {args.seeds} x {args.frames} frames (256x256, noise 0.05, 3 deg head motion), pixels:")
-    for name, values in errors.items():
-        e = np.concatenate(values)
-        print(f"  {name:26s} median {np.median(e):.3f}  p95 {np.percentile(e, 95):.3f}  max {e.max():.2f}")
+
+def variants(kernel, neck) -> dict:
+    """name -> (kernel, config, neck model, compensate) of the tracker configurations compared."""
+    default = TrackerConfig()
+    former = TrackerConfig(bandpass=BandpassConfig(lowpass_sigma_px=3.0))
+    no_jaw = None if neck is None else dataclasses.replace(neck, offsets=neck.offsets[~neck.free],
+                                                           free=neck.free[~neck.free], _weights={},
+                                                           features=_drop_free(neck))
+    return {"raw": (kernel, default, neck, False), "compensated": (kernel, default, neck, True),
+            "before issue 16": (with_window(kernel, 0, 14), former, None, False),
+            "uncalibrated window (raw)": (with_window(kernel, 0, 14), default, neck, False),
+            "low-pass 3 px (raw)": (kernel, former, neck, False),
+            "band not following the neck (raw)": (kernel, dataclasses.replace(
+                default, neck=dataclasses.replace(default.neck, follow=False)), neck, False),
+            "without the jaw's patch (compensated)": (kernel, default, no_jaw, True)}
+
+
+def _drop_free(neck: NeckModel) -> np.ndarray:
+    """The neck model's training features without the jaw patch's columns."""
+    keep = np.repeat(~neck.free, 2)
+    return neck.features[:, np.concatenate([keep, keep, [True, True]])]
+
+
+def conditions(rig, kernel, neck, frames: int, seeds: int, ablations: bool) -> None:
+    names = ["raw", "compensated", "before issue 16"]
+    tried = variants(kernel, neck)
+    if ablations:
+        names += [n for n in tried if n not in names]
+    print(f"R^2 of tau from the rise in pixels, {frames} frames, 256x256, noise 0.05, 8-bit, 40 swallows/min "
+          f"(ceiling = the true image position):")
+    print(f"  {'condition':48s} seed ceiling  " + "  ".join(f"{n[:14]:>14s}" for n in names) + "  baseline  err px")
+    for condition, overrides in CONDITIONS.items():
+        recording = overrides.get("expressions")
+        if recording and not Path(recording).is_file():
+            print(f"  {condition:48s} skipped: {recording} not found")
+            continue
+        for seed in range(seeds):
+            config = SequenceConfig(**{**BASE, "frames": frames, **overrides})
+            started = time.perf_counter()
+            seq = make_sequence(rig, config, seed=seed)
+            rendered = time.perf_counter() - started
+            init = tuple(seq.larynx_px[0])
+            scores, error = [], float("nan")
+            for name in names:
+                variant_kernel, cfg, variant_neck, compensate = tried[name]
+                track = track_sequence(seq.normals, variant_kernel, cfg, init=init, neck=variant_neck)
+                rise = track.y[0] - track.y
+                if compensate:
+                    rise = rise + track.neck[:, 1] - track.neck[0, 1]
+                scores.append(tau_r2(seq.tau, rise))
+                if name == "raw":
+                    error = float(np.median(np.hypot(track.x - seq.larynx_px[:, 0], track.y - seq.larynx_px[:, 1])))
+            base = np.array([raw_correlation_argmax(n, kernel) for n in seq.normals])
+            print(f"  {condition:48s} {seed:4d} {seq.ceiling_r2():7.3f}  " + "  ".join(f"{s:14.3f}" for s in scores)
+                  + f"  {tau_r2(seq.tau, -base[:, 1]):8.3f}  {error:6.2f}   ({rendered:.0f} s to render)", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--threads", default="1", help="thread counts to time, comma separated")
+    parser.add_argument("--seeds", type=int, default=1)
+    parser.add_argument("--frames", type=int, default=240)
+    parser.add_argument("--rig", help="rig file from python -m data.assets (default: the built-in rig)")
+    parser.add_argument("--sections", default="speed,slide,conditions,ablations")
+    args = parser.parse_args()
+    sections = set(args.sections.split(","))
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    rig = HeadNeckModel.from_config(args.rig)
+    print(f"rig: {rig.rig.source} ({rig.num_vertices} vertices)")
+    started = time.perf_counter()
+    kernel = calibrate_window(rig_kernel(rig), rig)
+    calibrated = time.perf_counter()
+    neck = NeckModel.from_rig(rig)
+    print(f"window calibrated on the rig: offset {kernel.window[0]:g} px, sigma_y {kernel.window[1]:g} px "
+          f"({calibrated - started:.1f} s); neck model: {len(neck.offsets)} patches, {int(neck.free.sum())} on the "
+          f"jaw ({time.perf_counter() - calibrated:.1f} s)")
+    if "speed" in sections:
+        speed(rig, kernel, neck, [int(t) for t in args.threads.split(",")])
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    if "slide" in sections:
+        slide(rig, kernel)
+    if "conditions" in sections or "ablations" in sections:
+        conditions(rig, kernel, neck, args.frames, args.seeds, "ablations" in sections)
 
 
 if __name__ == "__main__":

@@ -10,6 +10,9 @@ generator ``data.normal_sequences`` use them):
 - On disk a normal map is an RGB image: PNG (8 or 16 bit, also TIFF) holding the encoding (n + 1) / 2
   scaled to the integer range, background black; or EXR holding float32 raw normals n in [-1, 1],
   background 0.  EXR goes through the OpenEXR package (a dependency: the OpenCV wheels cannot read EXR).
+  EXR files of other tools are read too: R, G, B as separate channels or as one layer's
+  ``<layer>.R/G/B``, half or full floats, an alpha channel ignored; their values are the caller's to
+  interpret (raw or encoded: ``motion.track``'s ``float_encoding``).
 """
 from __future__ import annotations
 
@@ -30,12 +33,13 @@ def encode_normals(normals):
     return (normals + 1.0) / 2.0 * foreground
 
 
-def decode_normals(rgb: np.ndarray | torch.Tensor):
-    """RGB in [0,1] -> normals 2 * rgb - 1 (not renormalised; background handling: ``motion.track``)."""
+def decode_normals(rgb):
+    """RGB [..., 3] in [0,1] (numpy or torch) -> normals 2 * rgb - 1 (not renormalised; what counts as
+    background when decoding frames: ``motion.track.sources.decode_frame``)."""
     return rgb * 2.0 - 1.0
 
 
-#
+# ----------------------------------------------------------------------------- normal-map image files
 
 INTEGER_IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
 FLOAT_IMAGE_SUFFIXES = (".exr",)
@@ -80,22 +84,36 @@ def stored_to_unit(values: np.ndarray, label: str = "image", dtype=np.float32) -
     raise InputError(f"{label}: pixel type {values.dtype}, expected unsigned integers (8/16-bit) or floats")
 
 
+def _exr_rgb(channels: dict, path: Path) -> np.ndarray:
+    """R, G, B [H,W,3] float32 from an EXR's channels read one by one (``separate_channels``): the channels
+    ``R, G, B`` or those of one layer ``<layer>.R, <layer>.G, <layer>.B`` (as compositing tools name them)."""
+    names = sorted(channels)
+    layers = sorted({n[:-2] for n in names if n.endswith((".R", ".G", ".B"))
+                     and all(f"{n[:-2]}.{c}" in channels for c in "RGB")})
+    if all(c in channels for c in "RGB"):
+        keys = ["R", "G", "B"]
+    elif len(layers) == 1:
+        keys = [f"{layers[0]}.{c}" for c in "RGB"]
+    else:
+        found = ", ".join(names[:8]) + (" ..." if len(names) > 8 else "")
+        detail = f"layers {', '.join(layers)}: give a file with one" if layers else f"channels {found}"
+        raise InputError(f"{path}: EXR {detail}; expected R, G, B channels (a normal map)")
+    return np.stack([np.asarray(channels[k].pixels, dtype=np.float32) for k in keys], axis=-1)
+
+
 def _read_exr(path: Path) -> np.ndarray:
     import OpenEXR
 
     try:
-        with OpenEXR.File(str(path)) as exr:
-            channels = exr.channels()
-            for name in ("RGB", "RGBA"):
-                if name in channels:
-                    return np.asarray(channels[name].pixels, dtype=np.float32)[..., :3]
-            if all(c in channels for c in "RGB"):
-                return np.stack([np.asarray(channels[c].pixels, np.float32) for c in "RGB"], axis=-1)
-            raise InputError(f"{path}: EXR channels {sorted(channels)}, expected R, G, B (a normal map)")
+        with OpenEXR.File(str(path), separate_channels=True) as exr:
+            rgb = _exr_rgb(exr.channels(), path)
     except InputError:
         raise
     except Exception as e:  # the binding raises plain exceptions on bad files
         raise InputError(f"{path}: not a readable EXR image ({e})") from None
+    if rgb.ndim != 3:
+        raise InputError(f"{path}: EXR channels of shape {rgb.shape[:-1]}, expected images [H,W]")
+    return rgb
 
 
 def read_normal_image(path: str | os.PathLike) -> tuple[np.ndarray, bool]:

@@ -1,4 +1,4 @@
-"""Normal-map rendering of the head-and-neck rig: camera, batched software rasteriser, RGB encoding.
+"""Normal-map rendering of the head-and-neck rig: camera, batched software rasteriser, the larynx point.
 
 Conventions owned here (the tracker ``motion.track`` and the sequence
 generator ``data.normal_sequences`` use them):
@@ -23,6 +23,13 @@ generator ``data.normal_sequences`` use them):
   :func:`larynx_point`: the area-weighted centroid of the posed surface where
   the larynx term exceeds ``LARYNX_CAP`` = 30 % of its maximum, weighted by
   the excess (eta = 1).
+- The rig is used through its public API only: ``rig(theta, psi, tau, eta)``,
+  ``rig.rest_shape``, ``rig.larynx_offsets``, ``rig.faces``, ``rig.neutral``.
+
+Public API (other tools build on it): :class:`Camera`, :func:`neck_camera`,
+:func:`render_normals` (-> :class:`NormalRender`), :class:`NeckRenderer`
+(``renderer(theta, psi, tau, eta)``, ``pose``, ``render_with_truth``),
+:func:`larynx_point`, :func:`rest_larynx_point`, :func:`outward_faces`.
 
 Rasterisation: one sample per pixel centre, no antialiasing.  Faces must be
 triangles wound counter-clockwise seen from outside (:func:`outward_faces`
@@ -151,37 +158,38 @@ def vertex_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 
 # The larynx point averages where the larynx term exceeds this fraction of its maximum: the body of the
-# larynx, without the map's low fringe, whose footprint changes most as the map slides (on the built-in
-# rig, noise-free, the tracked point then stays within 0.35 px of it over tau -0.04..0.07, against
-# 1.3 px for the whole term).
+# larynx, without the map's low fringe, whose footprint changes most as the map slides (measurements:
+# benchmarks/README.md, "Tracker and renderer").
 LARYNX_CAP = 0.3
 
 
 def larynx_areas(rig, triangles: torch.Tensor | None = None) -> torch.Tensor:
-    """The template's surface area around each larynx-region vertex [M] (cm^2; ``vertex_areas`` at
-    ``rig.larynx_vertices``): the constant part of :func:`larynx_point`'s weights, computed once per rig.
-    triangles [F,3]: the rig's faces triangulated (either winding); default: triangulated here."""
+    """The template's surface area around each vertex [N] (cm^2; :func:`vertex_areas` of the rig's shape
+    without a larynx, ``rig.rest_shape(eta=0)``): the constant part of :func:`larynx_point`'s weights,
+    computed once per rig.  triangles [F,3]: the rig's faces triangulated (either winding); default:
+    triangulated here."""
     if triangles is None:
         triangles = torch.as_tensor(triangulate(rig.faces.numpy()), dtype=torch.long)
-    return vertex_areas(rig.template, triangles)[rig.larynx_vertices]
+    with torch.no_grad():
+        template = rig.rest_shape(eta=torch.zeros(1))[0]
+    return vertex_areas(template, triangles)
 
 
 def larynx_point(rig, vertices: torch.Tensor, tau: torch.Tensor, areas: torch.Tensor) -> torch.Tensor:
     """The larynx point [B,3] (cm): the ground-truth position the tracker reports.
 
-    The centroid of the larynx's cap over the posed surface: the larynx-region vertices
-    ``vertices[:, rig.larynx_vertices]`` weighted by ``max(|L| - LARYNX_CAP * max|L|, 0)``, |L| the
-    magnitude of the larynx term L(eta = 1, tau) at the vertex, times the vertex's surface area on the
-    template (``areas`` [M] = :func:`larynx_areas`).  The area makes it a surface integral (independent of
+    The centroid of the larynx's cap over the posed surface: the vertices ``vertices`` [B,N,3] weighted by
+    ``max(|L| - LARYNX_CAP * max|L|, 0)``, |L| the magnitude of the larynx term L(eta = 1, tau) at the
+    vertex (``rig.larynx_offsets``, zero away from the larynx), times the vertex's surface area on the
+    template (``areas`` [N] = :func:`larynx_areas`).  The area makes it a surface integral (independent of
     how densely the mesh samples the larynx); the cap keeps it on the body of the larynx, away from the
-    map's low fringe; eta scales all weights alike, so the point does not depend on it.  vertices [B,N,3]
-    posed (``rig(theta, psi, tau, eta)``), tau [B] the tau they were posed with.
+    map's low fringe; eta scales all weights alike, so the point does not depend on it.  vertices posed
+    (``rig(theta, psi, tau, eta)``), tau [B] the tau they were posed with.
     """
-    magnitude = rig.larynx_region_offsets(tau, torch.ones_like(tau)).norm(dim=-1)       # [B,M]
+    magnitude = rig.larynx_offsets(tau, torch.ones_like(tau)).norm(dim=-1)               # [B,N]
     cap = (magnitude - LARYNX_CAP * magnitude.amax(dim=1, keepdim=True)).clamp_min(0.0)
     weights = cap * areas
-    region = vertices[:, rig.larynx_vertices]                                          # [B,M,3]
-    return (weights[..., None] * region).sum(1) / weights.sum(1, keepdim=True).clamp_min(1e-12)
+    return torch.einsum("bn,bnc->bc", weights, vertices) / weights.sum(1, keepdim=True).clamp_min(1e-12)
 
 
 def rest_larynx_point(rig) -> torch.Tensor:
@@ -374,7 +382,9 @@ class NeckRenderer:
     def __post_init__(self) -> None:
         if self.camera is None:
             self.camera = neck_camera(self.rig)
-        self.faces = outward_faces(self.rig.template, self.rig.faces.numpy())
+        with torch.no_grad():
+            template = self.rig.rest_shape(eta=torch.zeros(1))[0]
+        self.faces = outward_faces(template, self.rig.faces.numpy())
         self.larynx_areas = larynx_areas(self.rig, self.faces)
 
     @torch.no_grad()

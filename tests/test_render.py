@@ -1,22 +1,42 @@
-"""Normal-map renderer (data/render.py) and synthetic sequences (data/normal_sequences.py).
+"""Normal-map renderer (data/render.py), normal-map files (data/normals.py) and synthetic sequences
+(data/normal_sequences.py).
 
-The renderer is checked against analytic surfaces (a plane, a sphere), its projection against its own
-rasterised depth, and the encoding against its definition (n + 1) / 2 on disk.
+The renderer is checked against analytic surfaces (a plane; a sphere, each pixel's ray intersected with it
+in closed form), its projection against its own rasterised depth, the encoding against its definition
+(n + 1) / 2 on disk, EXR files as other tools write them, and the sequences' truth against the built-in
+rig's construction (its UV height is linear in world height: 33.5 cm per UV unit).
 """
 from __future__ import annotations
 
-import dataclasses
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
 import pytest
 import torch
-import yaml
 
 from data.errors import InputError
-from data.normal_sequences import SequenceConfig, head_motion, make_sequence, write_sequence
+from data.expressions import EXPRESSION_NAMES, read_expressions
+from data.normal_sequences import SequenceConfig, head_motion, make_sequence, tau_r2, write_sequence
 from data.normals import encode_normals, read_normal_image, stored_to_unit, write_normal_image
-from data.render import Camera, NeckRenderer, larynx_areas, larynx_point, neck_camera, outward_faces, render_normals, rest_larynx_point
+from data.procedural_rig import Y_BOTTOM, Y_TOP
+from data.render import (
+    Camera,
+    NeckRenderer,
+    larynx_areas,
+    larynx_point,
+    neck_camera,
+    outward_faces,
+    render_normals,
+    rest_larynx_point,
+)
+from data.tables import CsvTable
+
+REPO = Path(__file__).resolve().parents[1]
+CM_PER_UV = Y_TOP - Y_BOTTOM     # the built-in rig's v runs linearly from Y_BOTTOM to Y_TOP (world cm)
 
 
 def grid_plane(size_cm: float, z: float, cells: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
@@ -62,28 +82,42 @@ def test_plane_facing_the_camera_renders_normal_001_over_its_projected_area(pers
 
 
 @pytest.mark.parametrize("perspective", [False, True])
-def test_sphere_normals_match_the_analytic_normals(perspective):
-    radius, centre = 3.0, (0.4, -0.3, 0.0)
-    vertices, faces = uv_sphere(radius, centre)
+def test_sphere_normals_match_the_closed_form_ray_sphere_intersection(perspective):
+    radius, centre = 3.0, np.array([0.4, -0.3, 0.0])
+    vertices, faces = uv_sphere(radius, tuple(centre))
     camera = Camera(centre=(0.0, 0.0, 0.0), width=96, height=96, cm_per_px=0.08, perspective=perspective,
                     distance=30.0)
     render = render_normals(vertices, faces, camera)
-    mask = render.mask[0]
-    # Analytic: the visible intersection of each pixel's ray with the sphere; here via the rendered depth.
-    rows, cols = torch.nonzero(mask, as_tuple=True)
-    depth = render.depth[0][mask]
+    # Each pixel centre's ray, in camera space (the eye at the origin looking along -z; the world centre
+    # (0, 0, 0) is at (0, 0, -distance)): orthographic rays run along -z from (x, y, 0), perspective ones
+    # leave the eye towards (x, y, -focal) in pixel units.  Nearest root of |o + t d - c|^2 = r^2.
+    rows, cols = np.mgrid[0:96, 0:96].astype(np.float64)
     cx, cy = camera.principal_point
-    scale = depth / camera.focal_px if perspective else torch.full_like(depth, camera.cm_per_px)
-    points = torch.stack([(cols - cx) * scale, (cy - rows) * scale, camera.distance - depth], -1)
-    analytic = (points - torch.tensor(centre)) / radius
-    analytic = analytic / analytic.norm(dim=-1, keepdim=True)
-    angle = torch.rad2deg(torch.arccos((render.normals[0][mask] * analytic).sum(-1).clamp(-1, 1)))
-    interior = render.normals[0][mask][:, 2] > 0.3            # away from the silhouette
-    assert float(angle[interior].median()) < 0.5
-    assert float(angle[interior].max()) < 2.0
-    # Silhouette radius: the sphere covers pi r^2 / s^2 pixels (orthographic; perspective slightly more).
-    expected = np.pi * (radius / camera.cm_per_px) ** 2
-    assert expected * 0.97 < int(mask.sum()) < expected * (1.12 if perspective else 1.03)
+    sphere = centre - np.array([0.0, 0.0, camera.distance])
+    if perspective:
+        origin = np.zeros((96, 96, 3))
+        direction = np.stack([cols - cx, cy - rows, np.full_like(rows, -camera.focal_px)], -1)
+    else:
+        origin = np.stack([(cols - cx) * camera.cm_per_px, (cy - rows) * camera.cm_per_px, np.zeros_like(rows)], -1)
+        direction = np.broadcast_to([0.0, 0.0, -1.0], (96, 96, 3))
+    direction = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
+    to_origin = origin - sphere
+    b_half = (direction * to_origin).sum(-1)
+    disc = b_half ** 2 - ((to_origin ** 2).sum(-1) - radius ** 2)
+    hit = disc > 0
+    t = -b_half - np.sqrt(np.where(hit, disc, 0.0))
+    analytic = (origin + t[..., None] * direction - sphere) / radius            # unit normals, camera space
+    mask = render.mask[0].numpy()
+    # Silhouette: the rendered pixels are the rays that hit, but for the faceted rim (a 64 x 128 sphere).
+    assert (mask != hit).sum() < 0.01 * hit.sum()
+    both = mask & hit & (analytic[..., 2] > 0.3)                             # away from the silhouette
+    normals = render.normals[0].numpy()[both]
+    angle = np.degrees(np.arccos(np.clip((normals * analytic[both]).sum(-1), -1, 1)))
+    # Interpolated vertex normals of a 64 x 128 sphere: within a fraction of its 2.8-degree facets.
+    assert float(np.median(angle)) < 0.3 and float(angle.max()) < 1.5
+    # The depth, too, is the intersection's: cm in front of the eye along the viewing axis.
+    depth = render.depth[0].numpy()[both]
+    assert float(np.abs(depth - (-(origin + t[..., None] * direction)[..., 2])[both]).max()) < 0.02
 
 
 @pytest.mark.parametrize("perspective", [False, True])
@@ -129,7 +163,7 @@ def test_larynx_point_slides_up_with_tau_and_ignores_eta(builtin_rig):
     vertices = builtin_rig(builtin_rig.neutral(3), tau=tau, eta=eta)
     points = larynx_point(builtin_rig, vertices, tau, larynx_areas(builtin_rig))
     rise = float(points[1, 1] - points[0, 1])
-    assert 0.8 < rise < 1.3                                  # tau 0.03 ~ 1 cm (models/rig.py)
+    assert rise == pytest.approx(0.03 * CM_PER_UV, rel=0.015)     # the map slides along v, linear in height
     # eta shrinks the bump towards the neck along the larynx direction only: the point moves < 0.3 cm.
     assert float((points[2] - points[1]).norm()) < 0.3
 
@@ -187,10 +221,14 @@ def test_sequence_is_deterministic_and_its_truth_follows_tau(builtin_rig):
     norms = np.linalg.norm(a.normals[a.mask], axis=-1)
     assert np.allclose(norms, 1.0, atol=1e-5)                     # noise is renormalised
     assert float(np.abs(a.normals[~a.mask]).max()) == 0.0
-    # No head motion: the truth moves straight up, linearly in tau (the rig's px per tau at 0.2 cm/px).
+    # No head motion: the truth moves straight up, linearly in tau: the built-in rig's map slides along its
+    # UV height, linear in world height at CM_PER_UV cm per unit, seen at 0.2 cm per px.  The larynx point
+    # is a centroid over the mesh's vertex rows (0.7 cm apart), which its slide resamples: within 1.5 %.
     assert np.allclose(a.larynx_px[:, 0], a.larynx_px[0, 0], atol=1e-3)
     slope = np.polyfit(a.tau, a.larynx_px[:, 1], 1)[0]
-    assert -230 < slope < -140                                    # ~35 cm per tau unit / 0.2 cm per px
+    assert slope == pytest.approx(-CM_PER_UV / 0.2, rel=0.015)
+    # With the head still and no expressions the slide is the truth, and the ceiling is near 1.
+    assert np.array_equal(a.slide_px, a.larynx_px) and a.ceiling_r2() > 0.999
 
 
 def test_head_motion_is_smooth_and_within_its_amplitude():
@@ -199,15 +237,6 @@ def test_head_motion_is_smooth_and_within_its_amplitude():
     head = np.degrees(theta.sum(axis=1))                         # the joints' share summed: the head's turn
     assert float(np.abs(head).max()) <= 3.0 + 1e-9 and float(np.abs(head).max()) > 1.0
     assert float(np.abs(np.diff(head, axis=0)).max()) < 0.3       # degrees per frame: smooth
-
-
-def test_sequence_yaml_mirrors_config_dataclass():
-    """configs/normal_sequences.yaml holds every SequenceConfig field with the dataclass's default, and the
-    CLI's own keys besides."""
-    with open(Path(__file__).resolve().parents[1] / "configs" / "normal_sequences.yaml") as f:
-        config = yaml.safe_load(f)
-    cli_keys = {"defaults", "out", "format", "seed", "rig", "threads"}
-    assert {k: v for k, v in config.items() if k not in cli_keys} == dataclasses.asdict(SequenceConfig())
 
 
 def test_sequence_folder_of_an_earlier_run_is_refused(tmp_path, builtin_rig):
@@ -224,3 +253,128 @@ def test_sequence_folder_of_an_earlier_run_is_refused(tmp_path, builtin_rig):
     with pytest.raises(InputError, match=r"format=jpg: expected png8, png16, exr, npy"):
         write_sequence(tmp_path / "other", sequence, "jpg")
     assert not (tmp_path / "other").exists()
+
+
+# --------------------------------------------------------------------------- EXR files of other tools
+
+
+def write_exr(path: Path, channels: dict) -> None:
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      {k: np.ascontiguousarray(v) for k, v in channels.items()}) as exr:
+        exr.write(str(path))
+
+
+@pytest.fixture
+def unit_normals():
+    rng = np.random.default_rng(1)
+    normals = rng.normal(size=(12, 10, 3)).astype(np.float32)
+    return normals / np.linalg.norm(normals, axis=-1, keepdims=True)
+
+
+def test_exr_written_by_other_tools(tmp_path, unit_normals):
+    """Separate R/G/B channels in half floats, RGBA, and one layer's <layer>.R/G/B (a compositor's pass)."""
+    n = unit_normals
+    half = {c: n[..., k].astype(np.float16) for k, c in enumerate("RGB")}
+    write_exr(tmp_path / "half.exr", half)
+    values, is_float = read_normal_image(tmp_path / "half.exr")
+    assert is_float and values.dtype == np.float32 and values.shape == (12, 10, 3)
+    assert float(np.abs(values - n).max()) <= 2.0 ** -11         # half precision: 11 significant bits
+    write_exr(tmp_path / "rgba.exr", {"RGBA": np.concatenate([n, np.full((12, 10, 1), 0.5, np.float32)], -1)})
+    assert np.array_equal(read_normal_image(tmp_path / "rgba.exr")[0], n)          # alpha dropped
+    layered = {f"normal.{c}": n[..., k] for k, c in enumerate("RGB")} | {"depth.Z": n[..., 0], "A": n[..., 1]}
+    write_exr(tmp_path / "layer.exr", layered)
+    assert np.array_equal(read_normal_image(tmp_path / "layer.exr")[0], n)
+
+
+def test_exr_errors_name_the_file_and_what_was_expected(tmp_path, unit_normals):
+    write_exr(tmp_path / "depth.exr", {"Z": unit_normals[..., 0]})
+    with pytest.raises(InputError, match=r"depth\.exr: EXR channels Z; expected R, G, B channels"):
+        read_normal_image(tmp_path / "depth.exr")
+    two = {f"{layer}.{c}": unit_normals[..., k] for layer in ("a", "b") for k, c in enumerate("RGB")}
+    write_exr(tmp_path / "two.exr", two)
+    with pytest.raises(InputError, match=r"two\.exr: EXR layers a, b: give a file with one"):
+        read_normal_image(tmp_path / "two.exr")
+    (tmp_path / "bad.exr").write_bytes(b"not an exr")
+    with pytest.raises(InputError, match=r"bad\.exr: not a readable EXR image"):
+        read_normal_image(tmp_path / "bad.exr")
+
+
+# --------------------------------------------------------------------------- sequences
+
+
+def test_tau_r2_is_the_squared_correlation_of_a_linear_fit():
+    rng = np.random.default_rng(0)
+    tau = rng.normal(size=200)
+    assert tau_r2(tau, 3.0 - 400.0 * tau) == pytest.approx(1.0)            # any affine map of tau
+    noisy = 400.0 * tau + rng.normal(scale=400.0, size=200)                # noise as large as the signal
+    fit = np.polyval(np.polyfit(noisy, tau, 1), noisy)
+    expected = 1.0 - ((tau - fit) ** 2).sum() / ((tau - tau.mean()) ** 2).sum()
+    assert tau_r2(tau, noisy) == pytest.approx(expected, abs=1e-12) and 0.3 < expected < 0.7
+    assert tau_r2(tau, np.full(200, 2.0)) == 0.0
+
+
+def write_hack_expressions(path: Path, weights: np.ndarray, fps: float) -> None:
+    """A HACK-named expression CSV with a time column (the format data.expressions reads)."""
+    header = ",".join(["time", *EXPRESSION_NAMES])
+    rows = [",".join([f"{i / fps:.6f}", *(f"{v:.6f}" for v in row)]) for i, row in enumerate(weights)]
+    path.write_text(header + "\n" + "\n".join(rows) + "\n")
+
+
+def test_sequence_replays_an_expression_recording(tmp_path, builtin_rig):
+    """The face replays the recording from expression_start, resampled to the sequence's fps, looping."""
+    fps_recording, frames = 20.0, 50
+    weights = np.zeros((40, len(EXPRESSION_NAMES)))
+    jaw = EXPRESSION_NAMES.index("jawOpen")
+    weights[:, jaw] = np.linspace(0.0, 0.78, 40)                          # 0.02 per recorded frame
+    write_hack_expressions(tmp_path / "take.csv", weights, fps_recording)
+    config = SequenceConfig(frames=frames, fps=30.0, size=64, cm_per_px=0.32, noise=0.0, head_motion_deg=0.0,
+                            expressions=str(tmp_path / "take.csv"), expression_start=0.5)
+    seq = make_sequence(builtin_rig, config, seed=0)
+    assert seq.psi.shape == (frames, builtin_rig.num_expressions)
+    # 40 recorded frames at 20 fps span 1.95 s: 59 frames at 30 fps (0 to 1.93 s); from 0.5 s (frame 15) the
+    # window runs to frame 58, then loops to the recording's start.
+    time = (15 + np.arange(frames)) % 59 / 30.0
+    np.testing.assert_allclose(seq.psi[:, jaw], 0.02 * time * fps_recording, atol=1e-5)
+    others = np.delete(seq.psi, jaw, axis=1)
+    assert float(np.abs(others).max()) == 0.0
+    with pytest.raises(InputError, match=r"expression_start=9: outside the recording .*take\.csv \(0\.\.1\.93 s\)"):
+        make_sequence(builtin_rig, SequenceConfig(**{**config.__dict__, "expression_start": 9.0}), seed=0)
+    with pytest.raises(InputError, match=r"missing\.csv: file not found"):
+        make_sequence(builtin_rig, SequenceConfig(**{**config.__dict__, "expressions": str(tmp_path / "missing.csv")}),
+                      seed=0)
+
+
+def test_sequence_from_a_live_link_face_take(builtin_rig, livelinkface_samples):
+    """A real recording, read where it is: the window is the take's, resampled; the seed picks its start."""
+    take = livelinkface_samples[0]
+    recording = read_expressions(take).resampled(30.0)
+    config = SequenceConfig(frames=40, size=64, cm_per_px=0.32, noise=0.0, head_motion_deg=0.0, expressions=str(take))
+    a, b = make_sequence(builtin_rig, config, seed=1), make_sequence(builtin_rig, config, seed=2)
+    starts = []
+    for seq in (a, b):
+        errors = [np.abs(recording.psi[s:s + 40] - seq.psi).max() for s in range(len(recording) - 40)]
+        starts.append(int(np.argmin(errors)))
+        assert min(errors) < 1e-6                                  # exactly a window of the take
+    assert starts[0] != starts[1]
+
+
+def test_normal_sequences_runs_as_a_command(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    out = tmp_path / "seq"
+    result = subprocess.run([sys.executable, "-m", "data.normal_sequences", f"out={out}", "frames=4", "size=64",
+                             "cm_per_px=0.32", "format=npy", "seed=3", "head_motion_deg=0"], cwd=tmp_path, env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "rendered 4 frames of 64x64" in result.stdout
+    stack = np.load(out / "normals.npy")
+    assert stack.shape == (4, 64, 64, 3) and stack.dtype == np.float32
+    truth = CsvTable(out / "truth.csv")
+    assert truth.header == ["frame", "time", "tau", "x_px", "y_px", "slide_x_px", "slide_y_px", "eta", "fps"]
+    np.testing.assert_allclose(truth.numeric("time"), np.arange(4) / 30.0)
+    # Bad input: exit status 2 and one line naming the key, nothing written.
+    for args, message in ((["format=jpg"], "format=jpg: expected png8, png16, exr, npy"),
+                          (["framez=3"], "framez"), (["frames=many"], "frames")):
+        bad = subprocess.run([sys.executable, "-m", "data.normal_sequences", f"out={tmp_path / 'bad'}", *args],
+                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+        assert bad.returncode == 2 and message in bad.stderr and "Traceback" not in bad.stderr
+        assert not (tmp_path / "bad").exists()
