@@ -2,6 +2,8 @@
 
     G = LBS(T + B_S(beta) + B_E(psi) + B_P(theta) + L(eta, tau), J, theta, W)
 
+(or DQS in place of LBS: ``skinning="dqs"``, dual-quaternion skinning, Kavan et al. 2008).
+
 Conventions (the project's, owned here):
 - Mesh in cm, y up, face towards +z; x points to the subject's left.
 - theta ``[B,J,3]``: axis-angle radians per joint, the rotation of each bone in
@@ -28,31 +30,53 @@ Conventions (the project's, owned here):
   anatomical axes as columns in bone coordinates).  Joint limits and priors
   (``models.joint_limits``) speak anatomical frames: convert with
   ``to_anatomical(theta)`` / ``from_anatomical(theta_anatomical)``.
+- Skinning: ``"lbs"`` (the release's linear blend skinning, the default) or ``"dqs"`` (dual quaternions:
+  no volume loss under twist), per model (``HeadNeckModel(rig, skinning=...)``) or per call
+  (``model(..., skinning=...)``).
+
+Speed and threads: the forward pass splits the mesh into vertex chunks and works in a planar layout inside
+(x, y, z planes of B frames, ``[3,B,c]``): per chunk a blend GEMM (template, expressions, shapes and
+correctives), the larynx at the few vertices the batch's tau range can reach, a blended-transform GEMM, three
+fused multiply-adds and one write into the ``[B,N,3]`` output, all in cache.  Whole chunks are handed to
+``torch.get_num_threads()`` threads (the caller and helper threads, each running torch single-threaded; fewer
+when the batch is small), which take the next chunk when free: there is no barrier per operation, so a
+thread that the OS deschedules (another job on its core) delays only the chunk it holds, and on a busy
+machine two threads are not slower than one.  The backward pass runs in the same chunks (each recomputed
+with autograd on its thread, as activation checkpointing does); under ``torch.compile`` the chunks run on the
+calling thread.  Figures: ``benchmarks/bench_rig.py`` and ``benchmarks/README.md``.
 """
 from __future__ import annotations
 
+import itertools
 import os
+import queue
+import threading
+from collections.abc import Sequence
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from data.assets import RigData
 from data.procedural_rig import build_procedural_rig
-from models.rotations import axis_angle_to_matrix
+from models.rotations import axis_angle_to_matrix, matrix_to_quaternion, quaternion_multiply
+
+SKINNINGS = ("lbs", "dqs")
 
 # ----------------------------------------------------------------------------- pure steps
 
 
-def blend_shapes(coefficients: torch.Tensor, basis: torch.Tensor, template: torch.Tensor) -> torch.Tensor:
-    """Template plus linear blendshapes, vertex-major.
+def blend_shapes(coefficients: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
+    """Linear blendshapes in the planar layout: ``sum_k c_bk basis_k``.
 
-    coefficients [B,K], basis [N*3,K], template [N*3] -> rest shape [N,3,B].
+    coefficients [B,K], basis [K,3,N] (per shape its x, y and z offsets as rows) -> [B,3,N].
+    ``HeadNeckModel.shape_basis`` ends with the template (coefficient 1): T + B_E + B_S + B_P in one product.
     """
-    return torch.addmm(template[:, None], basis, coefficients.T).reshape(-1, 3, coefficients.shape[0])
+    return (coefficients @ basis.reshape(basis.shape[0], -1)).reshape(coefficients.shape[0], 3, -1)
 
 
 def pose_features(rotations: torch.Tensor) -> torch.Tensor:
@@ -117,19 +141,426 @@ def skinning_transforms(world: torch.Tensor, rest_world_inverse: torch.Tensor) -
     return (world @ rest_world_inverse)[..., :3, :]
 
 
-def linear_blend_skinning(rest: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
-    """v'_n = sum_j w_nj (R_j v_n + t_j), vertex-major.
+# Inside the forward pass vertices are planar with the batch in the middle, [3,B,M] (x, y, z planes of B
+# frames of M vertices): every GEMM writes its result in that layout and every elementwise step runs over
+# contiguous rows of vertices, whatever the batch size.
 
-    rest [N,3,B], weights [N,J], transforms [B,J,3,4] -> posed [N,3,B].
-    Blends the 3x4 matrices per vertex with one [N,J] x [J,12B] product, then
-    applies them with three fused multiply-adds over contiguous batch rows
-    (the release blends a dense 4x4 per vertex and multiplies it, ~20x slower).
-    """
+
+def _transform_columns(transforms: torch.Tensor) -> torch.Tensor:
+    """[B,J,3,4] -> [12B, J], rows ordered (column k of the 3x4, row d, frame b): ``rows @ weights.T`` gives
+    every vertex's blended 3x4 as [4,3,B,M]."""
     batch, joints = transforms.shape[:2]
-    by_column = transforms.permute(1, 3, 2, 0).reshape(joints, 12 * batch)  # [J, (column d, row c, b)]
-    blended = (weights @ by_column).reshape(-1, 4, 3, batch)
-    posed = blended[:, 3].addcmul(blended[:, 0], rest[:, 0:1])
-    return posed.addcmul_(blended[:, 1], rest[:, 1:2]).addcmul_(blended[:, 2], rest[:, 2:3])
+    return transforms.permute(3, 2, 0, 1).reshape(12 * batch, joints)
+
+
+def _apply_blended(blended: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
+    """blended [4,3,B,M] (columns of per-vertex 3x4s), rest [3,B,M] -> [3,B,M]: three fused multiply-adds."""
+    posed = torch.addcmul(blended[3], blended[0], rest[0:1])
+    return posed.addcmul_(blended[1], rest[1:2]).addcmul_(blended[2], rest[2:3])
+
+
+def linear_blend_skinning(vertices: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+    """Linear blend skinning, v'_n = sum_j w_nj (R_j v_n + t_j) (the release's, and smplx's ``lbs``).
+
+    Args:
+        vertices: [B,N,3] rest-pose vertices (cm).
+        weights: [N,J] skinning weights (rows sum to 1).
+        transforms: [B,J,3,4] rest-to-posed bone transforms (``skinning_transforms``).
+
+    Returns:
+        [B,N,3] posed vertices.  The 3x4s are blended per vertex with one [12B,J] x [J,N] product and applied
+        with three fused multiply-adds (the release blends a dense 4x4 per vertex and multiplies it, ~40x
+        slower).
+    """
+    batch = transforms.shape[0]
+    blended = (_transform_columns(transforms) @ weights.T).reshape(4, 3, batch, -1)
+    return _apply_blended(blended, vertices.permute(2, 0, 1)).permute(1, 2, 0)
+
+
+def rigid_to_dual_quaternion(transforms: torch.Tensor) -> torch.Tensor:
+    """Rigid transforms [...,3,4] ``(R | t)`` -> unit dual quaternions [...,8]: the real part ``q = quat(R)``
+    (w, x, y, z; w >= 0) then the dual part ``1/2 (0, t) q`` (Hamilton product, ``models.rotations``)."""
+    real = matrix_to_quaternion(transforms[..., :3, :3])
+    translation = transforms[..., :3, 3]
+    pure = torch.cat([torch.zeros_like(translation[..., :1]), translation], dim=-1)
+    return torch.cat([real, 0.5 * quaternion_multiply(pure, real)], dim=-1)
+
+
+def dual_quaternion_pivots(weights: torch.Tensor) -> torch.Tensor:
+    """weights [N,J] -> [N] long: each vertex's most influential joint, the one the signs of the others'
+    quaternions are aligned with before blending (Kavan et al. 2008, sec. 3.3)."""
+    return weights.argmax(dim=1)
+
+
+def _pivot_usage(weights: torch.Tensor, pivots: torch.Tensor) -> torch.Tensor:
+    """[J,J] bool: ``usage[p, j]`` when some vertex of pivot ``p`` has a non-zero weight on joint ``j``."""
+    joints = weights.shape[1]
+    counts = F.one_hot(pivots, joints).to(torch.float64).T @ (weights != 0).to(torch.float64)
+    return counts > 0
+
+
+def _dual_quaternion_columns(dual_quaternions: torch.Tensor,
+                             usage: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Per-frame dual quaternions [B,J,8] -> ``(columns [8B,J], signed [8B,J*J] or None)``, rows ordered
+    (component, frame) like ``_transform_columns``.  ``signed`` holds, per pivot p (column block p), the
+    quaternions with the signs that put their real parts in pivot p's hemisphere; it is None when no used
+    (pivot, joint) pair needs a flip in any frame, the common case (then ``columns`` blends every vertex)."""
+    batch, joints = dual_quaternions.shape[:2]
+    columns = dual_quaternions.permute(2, 0, 1).reshape(8 * batch, joints)
+    real = dual_quaternions[..., :4]
+    flips = torch.einsum("bpc,bjc->bpj", real, real) < 0  # [B, pivot, joint]
+    if not bool((flips & usage).any()):
+        return columns, None
+    sign = 1.0 - 2.0 * flips.to(dual_quaternions.dtype)
+    signed = (sign[..., None] * dual_quaternions[:, None]).permute(3, 0, 1, 2)  # [8, B, pivot, joint]
+    return columns, signed.reshape(8 * batch, joints * joints)
+
+
+def _blend_dual_quaternions(weights: torch.Tensor, pivots: torch.Tensor, columns: torch.Tensor,
+                            signed: torch.Tensor | None) -> torch.Tensor:
+    """weights [M,J], pivots [M] -> blended dual quaternions [8,B,M] (not normalised)."""
+    count, joints = weights.shape
+    if signed is None:
+        blended = columns @ weights.T
+    else:  # each vertex's weights moved to the block of its pivot: one GEMM with the signed table
+        pick = F.one_hot(pivots, joints).to(weights.dtype)
+        blended = signed @ (pick[:, :, None] * weights[:, None, :]).reshape(count, joints * joints).T
+    return blended.reshape(8, -1, count)
+
+
+def _quadratic_forms() -> torch.Tensor:
+    """[12,32]: the 3x4 ``(R | t)`` of a dual quaternion ``q_r + eps q_d`` times ``|q_r|^2``, as a linear map of
+    the products ``q_r[a] q_r[b]`` (entries 0-15, a-major) and ``q_d[a] q_r[b]`` (16-31); rows ordered (column k
+    of the 3x4, row d) like ``_transform_columns``.  R is the rotation of the unit quaternion, and
+    t = 2 vec(q_d q_r*) = 2 (w_r d - d_w r + r x d)."""
+    rr = lambda a, b: a * 4 + b  # noqa: E731 - index of q_r[a] q_r[b]
+    dr = lambda a, b: 16 + a * 4 + b  # noqa: E731 - index of q_d[a] q_r[b]
+    w, x, y, z = range(4)
+    terms = {  # (row d, column k) -> [(coefficient, product index)]
+        (0, 0): [(1, rr(w, w)), (1, rr(x, x)), (-1, rr(y, y)), (-1, rr(z, z))],
+        (0, 1): [(2, rr(x, y)), (-2, rr(w, z))], (0, 2): [(2, rr(x, z)), (2, rr(w, y))],
+        (1, 0): [(2, rr(x, y)), (2, rr(w, z))],
+        (1, 1): [(1, rr(w, w)), (-1, rr(x, x)), (1, rr(y, y)), (-1, rr(z, z))],
+        (1, 2): [(2, rr(y, z)), (-2, rr(w, x))],
+        (2, 0): [(2, rr(x, z)), (-2, rr(w, y))], (2, 1): [(2, rr(y, z)), (2, rr(w, x))],
+        (2, 2): [(1, rr(w, w)), (-1, rr(x, x)), (-1, rr(y, y)), (1, rr(z, z))],
+        (0, 3): [(2, dr(x, w)), (-2, dr(w, x)), (2, dr(z, y)), (-2, dr(y, z))],
+        (1, 3): [(2, dr(y, w)), (-2, dr(w, y)), (2, dr(x, z)), (-2, dr(z, x))],
+        (2, 3): [(2, dr(z, w)), (-2, dr(w, z)), (2, dr(y, x)), (-2, dr(x, y))],
+    }
+    forms = torch.zeros(12, 32, dtype=torch.float64)
+    for (d, k), entries in terms.items():
+        for coefficient, index in entries:
+            forms[3 * k + d, index] += coefficient
+    return forms
+
+
+_QUADRATIC_FORMS = _quadratic_forms()
+
+
+def _apply_dual_quaternions(blended: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
+    """blended [8,B,M] (real w,x,y,z | dual w,x,y,z, not normalised), rest [3,B,M] -> [3,B,M].
+
+    The rigid transform of the normalised dual quaternion, ``(R | t) = Q(q_r, q_d) / |q_r|^2`` with Q the
+    quadratic forms of ``_quadratic_forms`` (the products of the components, then one small GEMM), applied
+    like LBS's blended 3x4s.
+    """
+    real = blended[:4]
+    products = (blended[:, None] * real[None]).reshape(32, -1)  # q[a] q_r[b], a-major
+    forms = _QUADRATIC_FORMS.to(dtype=blended.dtype, device=blended.device)
+    transform = (forms @ products).view(4, 3, *blended.shape[1:])
+    return _apply_blended(transform, rest) / (real * real).sum(0).clamp_min(torch.finfo(blended.dtype).tiny)
+
+
+def dual_quaternion_skinning(vertices: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor,
+                             pivots: torch.Tensor | None = None) -> torch.Tensor:
+    """Dual-quaternion linear blending (Kavan, Collins, Zara and O'Sullivan, "Geometric skinning with
+    approximate dual quaternion blending", ACM TOG 27(4), 2008), a drop-in for ``linear_blend_skinning``.
+
+    v'_n = T(q_n) v_n with q_n = sum_j w_nj s_nj Q_j normalised by its real part's norm, Q_j the unit dual
+    quaternion of bone j's rigid transform and s_nj = +-1 putting Q_j's real part in the hemisphere of the
+    pivot's (``dual_quaternion_pivots``).  A twisted chain keeps its volume and girth where LBS collapses it;
+    with one-hot weights it equals LBS.
+
+    Args:
+        vertices: [B,N,3] rest-pose vertices (cm).
+        weights: [N,J] skinning weights (rows sum to 1).
+        transforms: [B,J,3,4] rigid rest-to-posed bone transforms (``skinning_transforms``).
+        pivots: [N] long, each vertex's sign-reference joint; default the joint of its largest weight.
+
+    Returns:
+        [B,N,3] posed vertices.
+    """
+    pivots = dual_quaternion_pivots(weights) if pivots is None else pivots
+    columns, signed = _dual_quaternion_columns(rigid_to_dual_quaternion(transforms), _pivot_usage(weights, pivots))
+    blended = _blend_dual_quaternions(weights, pivots, columns, signed)
+    return _apply_dual_quaternions(blended, vertices.permute(2, 0, 1)).permute(1, 2, 0)
+
+
+# ----------------------------------------------------------------------------- threads
+
+# Vertex-frames per chunk: the chunk's blended transforms (48 bytes each) stay in a core's L2 cache; at
+# least 256 vertices so the per-chunk Python overhead stays small (measured in benchmarks/bench_rig.py).
+_CHUNK_WORK = 16384
+_MIN_CHUNK = 256
+# Below this many vertex-frames per thread a second thread does not pay for its hand-over (~0.1 ms).
+_MIN_THREAD_WORK = 24576
+
+
+def _usable_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+@contextmanager
+def _torch_single_threaded():
+    """Torch ops on the calling thread run single-threaded inside (restored after): no OpenMP regions."""
+    threads = torch.get_num_threads()
+    if threads == 1 or torch.compiler.is_compiling():
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+class _ChunkWorkers:
+    """Helper threads that run whole chunks of a forward pass beside the caller.
+
+    Each helper runs torch single-threaded (``torch.set_num_threads(1)`` is per thread for OpenMP and
+    MKL); a call hands out chunk indices from a shared counter, so the threads balance themselves and
+    none waits for another except at the end of the call.  Created on first use; a forked child starts
+    without them and makes its own.
+    """
+
+    def __init__(self):
+        self._reset()
+        os.register_at_fork(after_in_child=self._reset)
+
+    def _reset(self) -> None:
+        self._threads: list[threading.Thread] = []
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._lock = threading.Lock()
+
+    def _grow(self, count: int) -> None:
+        with self._lock:
+            while len(self._threads) < count:
+                ready = threading.Event()
+                thread = threading.Thread(target=self._serve, args=(self._jobs, ready), daemon=True,
+                                          name=f"hackneck-rig-{len(self._threads)}")
+                thread.start()
+                ready.wait()
+                self._threads.append(thread)
+
+    @staticmethod
+    def _serve(jobs: queue.SimpleQueue, ready: threading.Event) -> None:
+        torch.set_num_threads(1)  # also sets torch's default for new threads: the caller restores it
+        ready.set()
+        while True:
+            jobs.get()()
+
+    def run(self, task, count: int, threads: int) -> None:
+        """``task(i)`` for every i < count on the calling thread and ``threads - 1`` helpers; the first
+        exception is re-raised here.  Call under ``_torch_single_threaded``."""
+        helpers = min(threads, count) - 1
+        if helpers <= 0:
+            for i in range(count):
+                task(i)
+            return
+        self._grow(helpers)
+        indices = itertools.count()
+        failures: list[BaseException] = []
+        done = threading.Semaphore(0)
+        inference = torch.is_inference_mode_enabled()
+
+        def drain() -> None:
+            while not failures:
+                i = next(indices)
+                if i >= count:
+                    return
+                try:
+                    task(i)
+                except BaseException as error:  # noqa: B036 - handed to the caller
+                    failures.append(error)
+
+        def helper() -> None:
+            try:
+                with torch.inference_mode(inference), torch.no_grad():
+                    drain()
+            finally:
+                done.release()
+
+        for _ in range(helpers):
+            self._jobs.put(helper)
+        drain()
+        for _ in range(helpers):
+            done.acquire()
+        if failures:
+            raise failures[0]
+
+
+_WORKERS = _ChunkWorkers()
+_SCRATCH = threading.local()
+
+
+def _scratch(key: tuple, make):
+    """Per-thread reusable buffers for the fast path, rebuilt when ``key`` (sizes, dtype, device) changes."""
+    held = getattr(_SCRATCH, "held", None)
+    if held is None or held[0] != key:
+        with torch.inference_mode(False):  # a normal tensor: usable in and out of inference mode
+            held = (key, make())
+        _SCRATCH.held = held
+    return held[1]
+
+
+class _Chunks:
+    """One forward pass over vertex chunks: rest shape (blend GEMM plus the larynx), skinning, and the write
+    into the output, per chunk, planar [3,B,c] inside; ``posed`` out of place (tracing), ``fill`` in place
+    with per-thread buffers (the fast path), ``gradients`` per chunk by recomputation (the backward pass).
+
+    Inputs: coefficients [B,E+S+P+1] (the last column 1, for the template), larynx [3,B,A] (L at ``region``
+    [A], sorted), basis [E+S+P+1,3,N], weights [N,J], and the skinning tables (``_transform_columns``, or
+    ``_dual_quaternion_columns``' pair; ``signed`` None for LBS).
+    """
+
+    def __init__(self, model: HeadNeckModel, skinning: str, size: int, region: torch.Tensor):
+        self.skinning = skinning
+        self.plan, starts = model._plan(size)
+        self.size = size
+        self.num_vertices = model.num_vertices
+        self.region = region
+        self.bounds = torch.searchsorted(region, starts).tolist()  # larynx columns of chunk i: bounds[i:i+2]
+
+    def rest(self, i: int, coefficients, larynx, basis, out: torch.Tensor | None = None) -> torch.Tensor:
+        """[3,B,c] rest shape of chunk i; ``basis`` [3,K,c] its rows, ``larynx`` [3,B,a] its larynx columns."""
+        rest = torch.matmul(coefficients, basis, out=out)
+        if larynx is not None:
+            low, high = self.bounds[i], self.bounds[i + 1]
+            rest = rest.index_add_(2, self.region[low:high] - self.plan[i][0], larynx)
+        return rest
+
+    def skin(self, i: int, rest: torch.Tensor, weights: torch.Tensor, columns: torch.Tensor,
+             signed: torch.Tensor | None) -> torch.Tensor:
+        if self.skinning == "lbs":
+            return _apply_blended((columns @ weights.T).view(4, 3, rest.shape[1], -1), rest)
+        return _apply_dual_quaternions(_blend_dual_quaternions(weights, self.plan[i][4], columns, signed), rest)
+
+    def larynx_columns(self, i: int, larynx: torch.Tensor) -> torch.Tensor | None:
+        low, high = self.bounds[i], self.bounds[i + 1]
+        return larynx[:, :, low:high] if high > low else None
+
+    @staticmethod
+    def basis_rows(basis: torch.Tensor, start: int, stop: int) -> torch.Tensor:
+        """[K,3,N] -> the chunk's [3,K,c] (a view, for a batched product per coordinate)."""
+        return basis[:, :, start:stop].transpose(0, 1)
+
+    def posed(self, coefficients, larynx, basis, weights, columns, signed) -> torch.Tensor:
+        """[B,N,3], out of place."""
+        pieces = []
+        for i, (start, stop) in enumerate(p[:2] for p in self.plan):
+            rest = self.rest(i, coefficients, self.larynx_columns(i, larynx), self.basis_rows(basis, start, stop))
+            pieces.append(self.skin(i, rest, weights[start:stop], columns, signed).permute(1, 2, 0))
+        return torch.cat(pieces, dim=1)
+
+    def fill(self, threads: int, coefficients, larynx, columns, signed) -> torch.Tensor:
+        """[B,N,3] on ``threads`` threads (no autograd), with the model's own basis and weights."""
+        batch = coefficients.shape[0]
+        dtype, device = coefficients.dtype, coefficients.device
+        posed = torch.empty(batch, self.num_vertices, 3, dtype=dtype, device=device)
+        size = self.size
+
+        def views(count: int) -> tuple:
+            """This thread's buffers as rest [3,B,c] and its rows, blended [12B,c] and its four [3,B,c]
+            columns, chunk [3,B,c]; made once per thread and chunk size (fewer calls holding the GIL)."""
+            flat = _scratch((size, batch, dtype, device),
+                            lambda: torch.empty(18 * size * batch, dtype=dtype, device=device))
+            held = getattr(_SCRATCH, "views", None)
+            if held is None or held[0] is not flat or held[1] != count:
+                rest = flat[: 3 * batch * count].view(3, batch, count)
+                blended = flat[3 * batch * count: 15 * batch * count].view(12 * batch, count)
+                chunk = flat[15 * batch * count: 18 * batch * count].view(3, batch, count)
+                held = (flat, count, (rest, rest[0:1], rest[1:2], rest[2:3], blended,
+                                      *blended.view(4, 3, batch, count), chunk))
+                _SCRATCH.views = held
+            return held[2]
+
+        def task(i: int) -> None:
+            start, stop, basis, weights, _, weights_by_joint = self.plan[i]
+            rest, x, y, z, blended, b0, b1, b2, b3, chunk = views(stop - start)
+            self.rest(i, coefficients, self.larynx_columns(i, larynx), basis, out=rest)
+            if self.skinning == "lbs":
+                torch.mm(columns, weights_by_joint, out=blended)
+                torch.addcmul(b3, b0, x, out=chunk).addcmul_(b1, y).addcmul_(b2, z)
+            else:
+                chunk = self.skin(i, rest, weights, columns, signed)
+            posed[:, start:stop].copy_(chunk.permute(1, 2, 0))  # while the chunk is in cache
+
+        _WORKERS.run(task, len(self.plan), threads)
+        return posed
+
+    def gradients(self, threads: int, grad: torch.Tensor, needs: Sequence[bool], coefficients, larynx, basis,
+                  weights, columns, signed) -> list[torch.Tensor | None]:
+        """Gradients of (coefficients, larynx, basis, weights, columns, signed) where ``needs`` says, for
+        the output gradient ``grad`` [B,N,3]: each chunk recomputed with autograd on its own thread, the
+        pieces of the shared inputs summed in chunk order (deterministic whatever thread ran which)."""
+        inputs = (coefficients, larynx, basis, weights, columns, signed)
+        shared = [None] * len(self.plan)  # per chunk: gradients of coefficients, columns, signed
+        grad_larynx = torch.zeros_like(larynx) if needs[1] else None
+        grad_basis = torch.zeros_like(basis) if needs[2] else None
+        grad_weights = torch.zeros_like(weights) if needs[3] else None
+
+        def task(i: int) -> None:
+            start, stop = self.plan[i][:2]
+            leaf = [None if x is None else x.detach().requires_grad_(bool(need))
+                    for x, need in zip(inputs, needs, strict=True)]
+            with torch.enable_grad():
+                pieces = (leaf[0], self.larynx_columns(i, leaf[1]), self.basis_rows(leaf[2], start, stop),
+                          leaf[3][start:stop], leaf[4], leaf[5])
+                posed = self.skin(i, self.rest(i, *pieces[:3]), *pieces[3:])
+                wanted = [k for k, x in enumerate(pieces) if x is not None and needs[k]]
+                if not wanted:
+                    return
+                found = torch.autograd.grad(posed, [pieces[k] for k in wanted],
+                                            grad[:, start:stop].permute(2, 0, 1), allow_unused=True)
+            result = dict(zip(wanted, found, strict=True))
+            if result.get(1) is not None:
+                grad_larynx[:, :, self.bounds[i]: self.bounds[i + 1]] = result[1]
+            if result.get(2) is not None:
+                grad_basis[:, :, start:stop] = result[2].transpose(0, 1)
+            if result.get(3) is not None:
+                grad_weights[start:stop] = result[3]
+            shared[i] = (result.get(0), result.get(4), result.get(5))
+
+        _WORKERS.run(task, len(self.plan), threads)
+
+        def total(k: int) -> torch.Tensor | None:
+            parts = [piece[k] for piece in shared if piece is not None and piece[k] is not None]
+            return torch.stack(parts).sum(0) if parts else None
+
+        return [total(0), grad_larynx, grad_basis, grad_weights, total(1), total(2)]
+
+
+class _PosedChunks(torch.autograd.Function):
+    """The chunked forward pass with a backward pass in chunks too (each recomputed on a thread, as
+    activation checkpointing does), so neither direction runs many small multi-threaded operations."""
+
+    @staticmethod
+    def forward(ctx, chunks: _Chunks, threads: int, coefficients, larynx, basis, weights, columns, signed):
+        ctx.chunks, ctx.threads = chunks, threads
+        ctx.save_for_backward(coefficients, larynx, basis, weights, columns, signed)
+        return chunks.fill(threads, coefficients, larynx, columns, signed)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        needs = ctx.needs_input_grad[2:]
+        with _torch_single_threaded():
+            found = ctx.chunks.gradients(ctx.threads, grad, needs, *ctx.saved_tensors)
+        return (None, None, *found)
 
 
 # ----------------------------------------------------------------------------- module
@@ -139,13 +570,15 @@ class HeadNeckModel(nn.Module):
     """A HACK-style head-and-neck rig (the real release via ``load``, the procedural one via ``builtin``).
 
     Call: ``model(theta [B,J,3], psi [B,E]=None, tau [B]=None, eta [B]=None,
-    beta [B,S]=None, larynx_weights [B,K]=None) -> vertices [B,N,3]`` (cm).
-    Missing inputs take their rest value (zero; eta = 1; the first larynx map).
+    beta [B,S]=None, larynx_weights [B,K]=None, skinning=None) -> vertices [B,N,3]`` (cm).
+    Missing inputs take their rest value (zero; eta = 1; the first larynx map); ``skinning`` is
+    ``"lbs"`` or ``"dqs"`` (default: the model's ``skinning`` attribute, ``"lbs"`` unless given).
     """
 
-    def __init__(self, rig: RigData):
+    def __init__(self, rig: RigData, skinning: str = "lbs"):
         super().__init__()
         self.rig = rig
+        self.skinning = _skinning_name(skinning)
         dtype = torch.float32
         self.joint_names: list[str] = [str(n) for n in rig.joint_names]
         self.expression_names: list[str] = [str(n) for n in rig.expression_names]
@@ -154,12 +587,14 @@ class HeadNeckModel(nn.Module):
         n = len(rig.template)
         self.register_buffer("template", torch.tensor(rig.template, dtype=dtype))
         self.register_buffer("skin_weights", torch.tensor(rig.skin_weights, dtype=dtype))
-        # One vertex-major basis [N*3, E + S + P] for expressions, identity shape and pose correctives:
-        # B_E(psi) + B_S(beta) + B_P(theta) is a single product with the concatenated coefficients.
-        bases = [rig.expression_deltas.reshape(-1, n * 3), rig.shape_deltas.reshape(-1, n * 3),
-                 rig.pose_correctives.reshape(-1, n * 3)]
-        self.num_expressions, self.num_shapes, self.num_pose_features = (len(b) for b in bases)
-        self.register_buffer("blend_basis", torch.tensor(np.concatenate(bases).T, dtype=dtype).contiguous())
+        # One planar basis [E + S + P + 1, 3, N] (per shape the x, y and z offsets of all vertices as rows) for
+        # expressions, identity shapes, pose correctives and the template: T + B_E(psi) + B_S(beta) + B_P(theta)
+        # is a single product with (psi, beta, pose features, 1).
+        bases = [rig.expression_deltas, rig.shape_deltas, rig.pose_correctives.reshape(-1, n, 3),
+                 rig.template.reshape(1, n, 3)]
+        self.num_expressions, self.num_shapes, self.num_pose_features = (len(b) for b in bases[:3])
+        basis = np.concatenate([np.asarray(b, np.float64).reshape(-1, n, 3) for b in bases]).transpose(0, 2, 1)
+        self.register_buffer("shape_basis", torch.tensor(np.ascontiguousarray(basis), dtype=dtype))
         self.register_buffer("rest_local", torch.tensor(rig.joint_rest_local, dtype=dtype))
         rest_world = forward_kinematics(torch.eye(3, dtype=torch.float64).expand(1, len(self.parents), 3, 3),
                                         torch.tensor(rig.joint_rest_local, dtype=torch.float64), self.parents)[0]
@@ -170,36 +605,53 @@ class HeadNeckModel(nn.Module):
         self.register_buffer("anatomical_axes", axes.to(dtype))
         self.register_buffer("larynx_maps", torch.tensor(rig.larynx_maps, dtype=dtype))
         self.register_buffer("larynx_direction", torch.tensor(rig.larynx_direction, dtype=dtype))
-        # Only vertices whose map column (or its bilinear neighbour) holds a non-zero value can
-        # ever be displaced, as tau slides along v only: sampling just those is exact.
+        self._init_larynx_region(rig)
+        pivots = dual_quaternion_pivots(self.skin_weights)
+        self.register_buffer("dqs_pivots", pivots)
+        self.register_buffer("dqs_usage", _pivot_usage(self.skin_weights, pivots))
+        self._plans: dict = {}
+
+    def _init_larynx_region(self, rig: RigData) -> None:
+        """``larynx_vertices`` [M]: the vertices whose map columns (or bilinear neighbours) hold a non-zero
+        value, the only ones L can move as tau slides along v; ``larynx_grid`` [M,2] their sampling points;
+        per vertex the unshifted sampling row ``larynx_row`` and the rows ``larynx_rows`` [M,2] (first,
+        last; widened by 2 rows for rounding) between which its columns are non-zero: a frame displaces the
+        vertex only if its shifted row falls between them (``_larynx_active``)."""
         uv = torch.tensor(rig.vertex_uv, dtype=torch.float64)
         grid = torch.stack([2 * uv[:, 0] - 1, 2 * (1 - uv[:, 1]) - 1], dim=-1)
-        width = rig.larynx_maps.shape[2]
+        _, height, width = rig.larynx_maps.shape
         column = np.floor((grid[:, 0].clamp(-1, 1).numpy() + 1) / 2 * (width - 1)).astype(int)
-        occupied = np.abs(rig.larynx_maps).max(axis=(0, 1)) > 0
-        near = occupied[np.clip(column, 0, width - 1)] | occupied[np.clip(column + 1, 0, width - 1)]
-        self.register_buffer("larynx_vertices", torch.tensor(np.flatnonzero(near)))
-        self.register_buffer("larynx_grid", grid[self.larynx_vertices].to(dtype))
-        self._chunk_plans: dict[tuple[int, torch.device], list] = {}
+        columns = np.stack([np.clip(column, 0, width - 1), np.clip(column + 1, 0, width - 1)])  # [2, N]
+        occupied = np.abs(rig.larynx_maps).max(axis=0) > 0  # [H, W]
+        vertices = np.flatnonzero(occupied[:, columns].any(axis=(0, 1)))
+        self.register_buffer("larynx_vertices", torch.tensor(vertices))
+        self.register_buffer("larynx_grid", grid[vertices].to(torch.float32))
+        rows = occupied[:, columns[:, vertices]].any(axis=1)  # [H, M]
+        index = np.arange(height)[:, None]
+        first = np.where(rows, index, height).min(axis=0) - 2.0
+        last = np.where(rows, index, -1).max(axis=0) + 2.0
+        row = (self.larynx_grid[:, 1].double() + 1) / 2 * (height - 1)
+        self.register_buffer("larynx_row", row.to(torch.float32))
+        self.register_buffer("larynx_rows", torch.tensor(np.stack([first, last], axis=1), dtype=torch.float32))
 
     # ------------------------------------------------------------------ constructors
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "HeadNeckModel":
+    def load(cls, path: str | os.PathLike, skinning: str = "lbs") -> HeadNeckModel:
         """A rig file written by ``python -m data.assets`` (the real HACK release)."""
-        return cls(RigData.load(path))
+        return cls(RigData.load(path), skinning=skinning)
 
     @classmethod
-    def builtin(cls) -> "HeadNeckModel":
+    def builtin(cls, skinning: str = "lbs") -> HeadNeckModel:
         """The built-in procedural rig (no download)."""
-        return cls(build_procedural_rig())
+        return cls(build_procedural_rig(), skinning=skinning)
 
     @classmethod
-    def from_config(cls, path: str | os.PathLike | None) -> "HeadNeckModel":
+    def from_config(cls, path: str | os.PathLike | None, skinning: str = "lbs") -> HeadNeckModel:
         """``path`` to a rig file, or None / "" / "builtin" for the procedural rig."""
         if path in (None, "", "builtin"):
-            return cls.builtin()
-        return cls.load(Path(path))
+            return cls.builtin(skinning=skinning)
+        return cls.load(Path(path), skinning=skinning)
 
     # ------------------------------------------------------------------ sizes
 
@@ -249,15 +701,7 @@ class HeadNeckModel(nn.Module):
     def larynx_region_offsets(self, tau: torch.Tensor, eta: torch.Tensor,
                               larynx_weights: torch.Tensor | None = None) -> torch.Tensor:
         """L(eta, tau) [B,M,3] at ``larynx_vertices`` [M], the only vertices it can move."""
-        batch = tau.shape[0]
-        self._check(tau, (), "tau", batch)
-        self._check(eta, (), "eta", batch)
-        tau, eta = tau.to(self.template.dtype), eta.to(self.template.dtype)
-        if larynx_weights is None:
-            larynx_weights = tau.new_zeros(batch, self.num_larynx_maps)
-            larynx_weights[:, 0] = 1.0
-        self._check(larynx_weights, (self.num_larynx_maps,), "larynx_weights", batch)
-        larynx_weights = larynx_weights.to(self.template.dtype)
+        tau, eta, larynx_weights = self._larynx_arguments(tau, eta, larynx_weights)
         scalar = larynx_scalar(tau, self.larynx_maps, larynx_weights, self.larynx_grid)
         return (eta[:, None] * scalar)[..., None] * self.larynx_direction
 
@@ -269,8 +713,8 @@ class HeadNeckModel(nn.Module):
 
     @property
     def expression_deltas(self) -> torch.Tensor:
-        """[E,N,3] expression blendshape offsets (cm)."""
-        return self.blend_basis[:, : self.num_expressions].T.reshape(self.num_expressions, -1, 3)
+        """[E,N,3] expression blendshape offsets (cm), a view of ``shape_basis``."""
+        return self.shape_basis[: self.num_expressions].transpose(1, 2)
 
     def blend_coefficients(self, batch: int, psi=None, beta=None, rotations=None) -> torch.Tensor:
         """[B, E+S+P]: psi, beta and pose-corrective features, zero where not given."""
@@ -294,45 +738,115 @@ class HeadNeckModel(nn.Module):
         given = [x for x in (psi, tau, eta, beta, larynx_weights, rotations) if x is not None]
         batch = given[0].shape[0] if given else 1
         coefficients = self.blend_coefficients(batch, psi, beta, rotations)
-        shape = blend_shapes(coefficients, self.blend_basis, self.template.reshape(-1)).permute(2, 0, 1)
+        coefficients = torch.cat([coefficients, coefficients.new_ones(batch, 1)], dim=1)
+        shape = blend_shapes(coefficients, self.shape_basis).transpose(1, 2)
         tau, eta = self._larynx_inputs(batch, tau, eta)
         return shape.index_add(1, self.larynx_vertices, self.larynx_region_offsets(tau, eta, larynx_weights))
 
     def forward(self, theta: torch.Tensor, psi: torch.Tensor | None = None, tau: torch.Tensor | None = None,
                 eta: torch.Tensor | None = None, beta: torch.Tensor | None = None,
-                larynx_weights: torch.Tensor | None = None) -> torch.Tensor:
+                larynx_weights: torch.Tensor | None = None, skinning: str | None = None) -> torch.Tensor:
+        """Posed vertices [B,N,3] (cm).
+
+        Args:
+            theta: [B,J,3] axis-angle per joint in its bone frame.
+            psi: [B,E] expression weights; beta [B,S] identity shape; tau [B], eta [B] the larynx;
+                larynx_weights [B,K] identity weights of the larynx maps (each optional, see the class).
+            skinning: "lbs" or "dqs"; None takes the model's ``skinning``.
+
+        Returns:
+            [B,N,3] vertices; differentiable in every input.  Speed: see the module docstring (threads).
+        """
+        skinning = _skinning_name(self.skinning if skinning is None else skinning)
+        threads = torch.get_num_threads()
+        with _torch_single_threaded():
+            return self._pose(theta, psi, tau, eta, beta, larynx_weights, skinning, threads)
+
+    # ------------------------------------------------------------------ the forward pass
+
+    def _pose(self, theta, psi, tau, eta, beta, larynx_weights, skinning: str, threads: int) -> torch.Tensor:
         rotations = self.rotations(theta)
         batch = theta.shape[0]
         coefficients = self.blend_coefficients(batch, psi, beta, rotations)
         tau, eta = self._larynx_inputs(batch, tau, eta)
-        larynx = self.larynx_region_offsets(tau, eta, larynx_weights).permute(1, 2, 0).contiguous()  # [M,3,B]
+        if batch == 0:
+            return self.template.new_zeros(0, self.num_vertices, 3)
+        # [B, E+S+P+1]: the last column multiplies the template, the last shape of ``shape_basis``.
+        coefficients = torch.cat([coefficients, coefficients.new_ones(batch, 1)], dim=1)
+        region, larynx = self._larynx_active(tau, eta, larynx_weights)  # [A], [3,B,A]
         transforms = skinning_transforms(forward_kinematics(rotations, self.rest_local, self.parents),
                                          self.rest_world_inverse)
-        template = self.template.reshape(-1)
-        # Vertex chunks keep each step's working set in cache (~2x faster than whole-mesh passes).
-        posed = template.new_empty(batch, self.num_vertices, 3)
-        for start, stop, local, in_region in self._chunk_plan(max(256, 65536 // batch)):
-            rest = blend_shapes(coefficients, self.blend_basis[3 * start: 3 * stop], template[3 * start: 3 * stop])
-            if len(local):
-                rest.index_add_(0, local, larynx[in_region])
-            chunk = linear_blend_skinning(rest, self.skin_weights[start:stop], transforms)
-            posed[:, start:stop] = chunk.permute(2, 0, 1)  # written while the chunk is in cache
-        return posed
+        if skinning == "lbs":
+            tables = (_transform_columns(transforms), None)
+        else:
+            tables = _dual_quaternion_columns(rigid_to_dual_quaternion(transforms), self.dqs_usage)
+        if torch.compiler.is_compiling():  # no helper threads in a traced graph: plain out-of-place chunks
+            chunks = _Chunks(self, skinning, self._schedule(batch, 1)[0], region)
+            return chunks.posed(coefficients, larynx, self.shape_basis, self.skin_weights, *tables)
+        size, threads = self._schedule(batch, threads)
+        return _PosedChunks.apply(_Chunks(self, skinning, size, region), threads, coefficients, larynx,
+                                  self.shape_basis, self.skin_weights, *tables)
+
+    def _schedule(self, batch: int, threads: int) -> tuple[int, int]:
+        """(vertices per chunk, threads) for a batch: chunks of ~``_CHUNK_WORK`` vertex-frames (at least
+        ``_MIN_CHUNK`` vertices), at most one thread per ``_MIN_THREAD_WORK`` vertex-frames and per usable
+        CPU, and with several threads at least 4 chunks each, so that they can balance."""
+        n = self.num_vertices
+        threads = max(1, min(threads, _usable_cpus(), batch * n // _MIN_THREAD_WORK))
+        size = max(_MIN_CHUNK, _CHUNK_WORK // batch)
+        if threads > 1:
+            size = min(size, max(_MIN_CHUNK // 4, -(-n // (4 * threads))))
+        return min(size, n), threads
+
+    def _plan(self, size: int) -> tuple[list, torch.Tensor]:
+        """Vertex chunks of ``size``: (start, stop, shape_basis rows [3,K,c], skin weights [c,J], dqs pivots
+        [c], skin weights [J,c]) each, and the chunk starts plus the vertex count [C+1] (cached per size; ``.to()``,
+        ``.double()`` clear it)."""
+        if size not in self._plans:
+            n = self.num_vertices
+            starts = list(range(0, n, size))
+            plan = [(s, min(s + size, n), _Chunks.basis_rows(self.shape_basis, s, s + size),
+                     self.skin_weights[s: s + size], self.dqs_pivots[s: s + size],
+                     self.skin_weights[s: s + size].T) for s in starts]
+            self._plans[size] = (plan, torch.tensor(starts + [n], device=self.larynx_vertices.device))
+        return self._plans[size]
+
+    def _apply(self, fn, *args, **kwargs):
+        self._plans = {}
+        return super()._apply(fn, *args, **kwargs)
+
+    def _larynx_active(self, tau: torch.Tensor, eta: torch.Tensor,
+                       larynx_weights: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The larynx vertices some frame of the batch displaces (sorted) [A], and L there [3,B,A].
+
+        Exact: a vertex outside it has all four bilinear neighbours zero in every frame (so zero value and
+        gradient), from the batch's tau range and the vertex's non-zero rows (``_init_larynx_region``)."""
+        tau, eta, larynx_weights = self._larynx_arguments(tau, eta, larynx_weights)
+        keep = None
+        if tau.numel():
+            low, high = float(tau.detach().min()), float(tau.detach().max())
+            if np.isfinite(low) and np.isfinite(high):
+                last_row = self.larynx_maps.shape[1] - 1
+                lowest = (self.larynx_row + low * last_row).clamp(0, last_row)
+                highest = (self.larynx_row + high * last_row).clamp(0, last_row)
+                keep = torch.nonzero((highest >= self.larynx_rows[:, 0]) & (lowest <= self.larynx_rows[:, 1]))[:, 0]
+        region = self.larynx_vertices if keep is None else self.larynx_vertices[keep]
+        grid = self.larynx_grid if keep is None else self.larynx_grid[keep]
+        scalar = larynx_scalar(tau, self.larynx_maps, larynx_weights, grid)  # [B, A]
+        return region, (eta[:, None] * scalar)[None] * self.larynx_direction[:, None, None]
 
     # ------------------------------------------------------------------ helpers
 
-    def _chunk_plan(self, size: int) -> list:
-        """Vertex ranges of ``size`` with the larynx-region vertices each holds (local index, region index),
-        on the device of the buffers (cached per size and device, so ``.to(device)`` gets its own)."""
-        key = (size, self.larynx_vertices.device)
-        if key not in self._chunk_plans:
-            plan, region = [], self.larynx_vertices
-            for start in range(0, self.num_vertices, size):
-                stop = min(start + size, self.num_vertices)
-                inside = torch.nonzero((region >= start) & (region < stop)).reshape(-1)
-                plan.append((start, stop, region[inside] - start, inside))
-            self._chunk_plans[key] = plan
-        return self._chunk_plans[key]
+    def _larynx_arguments(self, tau, eta, larynx_weights) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        batch = tau.shape[0]
+        self._check(tau, (), "tau", batch)
+        self._check(eta, (), "eta", batch)
+        tau, eta = tau.to(self.template.dtype), eta.to(self.template.dtype)
+        if larynx_weights is None:
+            larynx_weights = tau.new_zeros(batch, self.num_larynx_maps)
+            larynx_weights[:, 0] = 1.0
+        self._check(larynx_weights, (self.num_larynx_maps,), "larynx_weights", batch)
+        return tau, eta, larynx_weights.to(self.template.dtype)
 
     def _larynx_inputs(self, batch: int, tau, eta) -> tuple[torch.Tensor, torch.Tensor]:
         tau = self.template.new_zeros(batch) if tau is None else tau
@@ -350,3 +864,9 @@ class HeadNeckModel(nn.Module):
     def neutral(self, batch: int = 1) -> torch.Tensor:
         """The rest pose theta = 0 [B,J,3]."""
         return self.template.new_zeros(batch, self.num_joints, 3)
+
+
+def _skinning_name(skinning: str) -> str:
+    if skinning not in SKINNINGS:
+        raise ValueError(f"skinning={skinning!r}: expected one of {', '.join(SKINNINGS)}")
+    return skinning

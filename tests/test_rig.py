@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import threading
 
 import numpy as np
 import pytest
@@ -9,7 +10,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from data.expressions import EXPRESSION_NAMES
-from models.rig import HeadNeckModel
+from data.procedural_rig import Y_BOTTOM, Y_CAP, Y_TOP
+from models.rig import HeadNeckModel, linear_blend_skinning, skinning_transforms
 
 
 def random_inputs(model: HeadNeckModel, batch: int, seed: int = 0, scale: float = 0.3):
@@ -50,9 +52,16 @@ def test_larynx_moves_monotonically_up_the_neck_with_tau(builtin_rig):
     taus = np.linspace(-0.06, 0.10, 17)
     heights = np.array([larynx_height(builtin_rig, t) for t in taus])
     assert (np.diff(heights) > 0).all()
-    # About 34 cm of neck per UV unit on this rig: tau 0.03 slides the larynx ~1 cm.
+    # Derived from the construction (data/procedural_rig.py, body_surface): every vertex below the crown has
+    # v = (y - Y_BOTTOM) / (Y_TOP - Y_BOTTOM), so sliding the map by tau in v slides the larynx by
+    # tau (Y_TOP - Y_BOTTOM) = tau (14.5 + 19.0) cm: 33.5 cm per UV unit.  The centroid of the bump sampled
+    # at rows 29/60 cm apart follows a slide to ~1e-3 cm, i.e. the fitted slope to ~0.01 cm per unit.
+    assert Y_TOP - Y_BOTTOM == 33.5
+    below_crown = builtin_rig.template[:, 1] < Y_CAP
+    uv = torch.tensor(builtin_rig.rig.vertex_uv)[below_crown]
+    assert torch.allclose(uv[:, 1], (builtin_rig.template[below_crown, 1] - Y_BOTTOM) / 33.5, atol=1e-6)
     slope = np.polyfit(taus, heights, 1)[0]
-    assert 25 < slope < 45
+    assert slope == pytest.approx(33.5, abs=0.05)
 
 
 def test_batch_matches_single_frames(builtin_rig):
@@ -103,16 +112,30 @@ def test_positive_x_rotation_is_flexion_nose_goes_down(builtin_rig):
     assert moved[0] > 1.0
 
 
-def test_gradients_reach_every_input(builtin_rig):
-    theta, psi, tau, eta, beta = random_inputs(builtin_rig, 3, seed=1)
-    weights = torch.tensor([[0.6, 0.3, 0.1]]).repeat(3, 1)
-    inputs = [t.clone().requires_grad_(True) for t in (theta, psi, tau, eta, beta, weights)]
-    out = builtin_rig(*inputs[:5], larynx_weights=inputs[5])
-    probe = torch.randn(out.shape, generator=torch.Generator().manual_seed(2))
-    (out * probe).sum().backward()
-    for name, t in zip(("theta", "psi", "tau", "eta", "beta", "larynx_weights"), inputs):
-        assert t.grad is not None and torch.isfinite(t.grad).all(), name
-        assert t.grad.abs().sum() > 0, name
+@pytest.fixture(scope="module")
+def builtin_rig64(builtin_rig):
+    return HeadNeckModel(builtin_rig.rig).double()
+
+
+def test_gradients_match_finite_differences(builtin_rig64):
+    """float64 gradcheck in psi (6 of the 55 shapes, the others held at non-zero values: all share one
+    product), eta, beta, the larynx map weights and theta, for 2 frames (so that a gradient leaking across
+    frames shows).  The vertices are projected on 4 random unit directions (4 backward passes); tau is
+    piecewise linear in the bilinear map (its own test below)."""
+    g = torch.Generator().manual_seed(1)
+    theta, psi, tau, eta, beta = (t.double() for t in random_inputs(builtin_rig64, 2, seed=1))
+    weights = torch.tensor([[0.6, 0.3, 0.1], [0.2, 0.5, 0.3]], dtype=torch.float64)
+    shapes = [EXPRESSION_NAMES.index(n) for n in ("jawOpen", "mouthSmile_L", "eyeBlink_R", "browInnerUp_L",
+                                                  "cheekPuff_R", "mouthFunnel")]
+    probe = torch.randn(4, builtin_rig64.num_vertices * 3, generator=g, dtype=torch.float64)
+    probe = probe / probe.norm(dim=1, keepdim=True)
+
+    def projected(subset, eta, beta, weights, theta):
+        full = psi.index_copy(1, torch.tensor(shapes), subset)
+        return probe @ builtin_rig64(theta, full, tau, eta, beta, larynx_weights=weights).reshape(2, -1).T
+
+    inputs = tuple(t.clone().requires_grad_(True) for t in (psi[:, shapes], eta, beta, weights, theta))
+    assert torch.autograd.gradcheck(projected, inputs, eps=1e-6, atol=1e-8, rtol=1e-6)
 
 
 def test_tau_gradient_matches_finite_differences(builtin_rig):
@@ -217,3 +240,75 @@ def test_wrong_input_shapes_are_named(builtin_rig, bad, message):
     kwargs.update(bad)
     with pytest.raises(ValueError, match=message):
         builtin_rig(**kwargs)
+
+
+def _dense_reference(model: HeadNeckModel, theta, psi, tau, eta, beta) -> torch.Tensor:
+    """The forward pass composed from the pure steps over the whole mesh: the rest shape with the larynx
+    sampled at every larynx-region vertex, then one LBS (no chunks, threads or larynx selection)."""
+    rest = model.rest_shape(psi=psi, tau=tau, eta=eta, beta=beta, rotations=model.rotations(theta))
+    transforms = skinning_transforms(model.joint_transforms(theta), model.rest_world_inverse)
+    return linear_blend_skinning(rest, model.skin_weights, transforms)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_chunked_threaded_forward_equals_the_dense_composition(builtin_rig, threads):
+    """Batches on 1 and 2 threads (several chunks each), taus from far below to far above the map (the larynx
+    selection by tau range), and a batch mixing them."""
+    theta, psi, _, eta, beta = random_inputs(builtin_rig, 16, seed=8)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for tau in (torch.full((16,), -0.4), torch.linspace(-0.08, 0.12, 16), torch.full((16,), 0.6),
+                    torch.tensor([-1.0, 1.0] * 8), torch.zeros(16)):
+            with torch.no_grad():
+                posed = builtin_rig(theta, psi, tau, eta, beta)
+                expected = _dense_reference(builtin_rig, theta, psi, tau, eta, beta)
+            assert float((posed - expected).abs().max()) < 2e-5, tau
+        assert torch.get_num_threads() == threads  # the caller's setting survives the pass
+        seen = []
+        worker = threading.Thread(target=lambda: seen.append(torch.get_num_threads()))
+        worker.start()
+        worker.join()
+        assert seen == [threads]  # and new threads still start with it
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_larynx_selection_keeps_every_displaced_vertex(builtin_rig):
+    """At each tau the vertices left out of the batch's larynx selection have exactly zero displacement."""
+    taus = torch.linspace(-0.3, 0.3, 121)
+    full = builtin_rig.larynx_region_offsets(taus, torch.ones(121)).norm(dim=-1)  # [T, M]
+    for k in range(0, 121, 10):
+        region, offsets = builtin_rig._larynx_active(taus[k:k + 1], torch.ones(1), None)
+        inside = torch.isin(builtin_rig.larynx_vertices, region)
+        assert float(full[k, ~inside].sum()) == 0.0
+        assert int(inside.sum()) < len(builtin_rig.larynx_vertices)  # it does leave vertices out
+        assert torch.allclose(offsets[:, 0].T, builtin_rig.larynx_region_offsets(
+            taus[k:k + 1], torch.ones(1))[0, inside], atol=1e-7)
+
+
+@pytest.mark.parametrize("skinning", ["lbs", "dqs"])
+def test_backward_in_chunks_on_threads_matches_one_thread(builtin_rig, skinning):
+    theta, psi, tau, eta, beta = random_inputs(builtin_rig, 12, seed=9)
+    probe = torch.randn(12, builtin_rig.num_vertices, 3, generator=torch.Generator().manual_seed(10))
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            inputs = [t.clone().requires_grad_(True) for t in (theta, psi, tau, eta, beta)]
+            posed = builtin_rig(*inputs, skinning=skinning)
+            (posed * probe).sum().backward()
+            with torch.no_grad():
+                fast = builtin_rig(theta, psi, tau, eta, beta, skinning=skinning)
+            assert torch.equal(posed.detach(), fast)  # recording or not, the same pass
+            results.append([t.grad for t in inputs])
+    finally:
+        torch.set_num_threads(before)
+    for one, two in zip(*results):  # other chunk sizes: float32 sums in another order
+        assert float((one - two).abs().max()) <= 1e-5 * float(one.abs().max())
+        assert float(one.abs().max()) > 0
+
+
+def test_empty_batch(builtin_rig):
+    assert builtin_rig(torch.zeros(0, 8, 3)).shape == (0, builtin_rig.num_vertices, 3)
