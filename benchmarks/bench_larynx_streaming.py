@@ -4,14 +4,14 @@
 
 Prints:
 - frames/s of the whole-sequence API (``generate``) and of the live per-frame API (``step``), B = 1;
-- the per-frame cost (median over 500 frames) at frame 100, 10,000 and ``--far``, and the size of
-  the decoder's cache there (constant: bounded memory);
+- the per-frame cost (median over 500 frames) at frame 100, 10,000 and ``--far``, and the bytes of
+  every tensor the stream holds there (``tensor_bytes``; constant: bounded memory);
 - FaceFormer-style decoding, which reruns the model on the whole prefix at every frame
   (``generate_uncached``): its per-frame cost at prefix 100, 600 (FaceFormer's limit) and 2,000
   frames, the ratio to streaming, and the total time of a 600-frame clip both ways.
 
-Without ``--checkpoint`` the model has the default size (``configs/model/larynx_transformer.yaml``)
-and random weights; speed does not depend on the weights.  The CPU may be shared with other
+Without ``--checkpoint`` the model has the default size (``LarynxTransformerConfig``, the
+``model`` group's schema) and random weights; speed does not depend on the weights.  The CPU may be shared with other
 processes: figures are medians, and the load average is printed beside them.
 """
 from __future__ import annotations
@@ -24,62 +24,47 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from models.checkpoint import load_model  # noqa: E402
-from models.larynx_transformer import build_model, single_thread  # noqa: E402
+from timing import frames_per_second  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+from models.checkpoint import load_model  # noqa: E402
+from models.larynx_transformer import (  # noqa: E402
+    LarynxDataFields,
+    LarynxTransformer,
+    LarynxTransformerConfig,
+    tensor_bytes,
+)
 
 
 def default_model():
-    config = OmegaConf.to_container(OmegaConf.load(REPO / "configs" / "model" / "larynx_transformer.yaml"))
     torch.manual_seed(0)
-    return build_model({**config, "fps": 30.0, "subjects": [], "tau_mean": 0.0, "tau_scale": 0.01}).eval()
+    return LarynxTransformer(LarynxTransformerConfig(), LarynxDataFields(30.0, [], 0.0, 0.01)).eval()
 
 
-def frames_per_second(run, frames: int, repeats: int = 3) -> float:
-    """Best of ``repeats`` (the least disturbed by other processes)."""
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        best = min(best, time.perf_counter() - start)
-    return frames / best
+def streaming_costs(model, psi: torch.Tensor, positions: list[int], span: int = 500
+                    ) -> dict[int, tuple[float, float, int]]:
+    """Median wall-clock and CPU seconds per ``step()`` (the live per-frame API: encode one frame, decode it)
+    over ``span`` frames from each position, and the bytes of tensors the stream holds there.
 
-
-def streaming_costs(model, psi: torch.Tensor, positions: list[int], span: int = 500) -> dict[int, tuple[float, int]]:
-    """Median seconds per frame over ``span`` frames from each position, and the cache size there.
-
-    One stream per position is first decoded up to it (untimed); the streams then take turns, one
-    frame each, so that load from other processes falls on all positions alike.
+    One stream per position is first stepped up to it (untimed); the streams then take turns, one frame
+    each, so that load from other processes falls on all positions alike.
     """
-    chunk = 1024
-    chunks = len(psi) // chunk
-
     streams = {p: model.stream(1) for p in positions}
-    encoded: dict[int, list] = {}
-
-    def inputs(p: int, t: int):  # stream p's cross-attention inputs of frame t, encoded by chunks as generate() does
-        if t % chunk == 0 or p not in encoded:
-            c = (t // chunk) % chunks
-            encoded[p] = streams[p].encode(psi[None, c * chunk:(c + 1) * chunk])
-        return [frames[t % chunk] for frames in encoded[p]]
-
-    times = {p: [] for p in positions}
-    with torch.inference_mode(), single_thread():  # as generate() and step() run
+    wall, cpu = {p: [] for p in positions}, {p: [] for p in positions}
+    for p, stream in streams.items():
+        for t in range(p):
+            stream.step(psi[t % len(psi)])
+    for i in range(span):
         for p, stream in streams.items():
-            for t in range(p):
-                stream.advance(inputs(p, t))
-        for i in range(span):
-            for p, stream in streams.items():
-                cross = inputs(p, p + i)
-                start = time.perf_counter()
-                stream.advance(cross)
-                times[p].append(time.perf_counter() - start)
-    return {p: (float(np.median(times[p])), streams[p].cache_elements()) for p in positions}
+            frame = psi[(p + i) % len(psi)]
+            start, start_cpu = time.perf_counter(), time.process_time()
+            stream.step(frame)
+            wall[p].append(time.perf_counter() - start)
+            cpu[p].append(time.process_time() - start_cpu)
+    return {p: (float(np.median(wall[p])), float(np.median(cpu[p])), tensor_bytes(streams[p], exclude=(model,)))
+            for p in positions}
 
 
 def best_over_threads(run, threads: int) -> tuple[float, int]:
@@ -121,27 +106,31 @@ def main() -> None:
     model = load_model(args.checkpoint, "larynx_transformer")[0] if args.checkpoint else default_model()
     cfg = model.config
     print(f"model: d_model {cfg['d_model']}, {cfg['n_layers']} layers, {cfg['n_heads']} heads, window "
-          f"{cfg['window']}, cross window {cfg['cross_window']}; torch threads {args.threads}; "
-          f"load average {os.getloadavg()[0]:.2f}")
+          f"{cfg['window']}, cross window {cfg['cross_window']}, expression dilations {cfg['expression_dilations']}; "
+          f"torch threads {args.threads}; load average {os.getloadavg()[0]:.2f}")
     psi = torch.rand(20_000, 55, generator=torch.Generator().manual_seed(0))
 
-    whole = frames_per_second(lambda: model.generate(psi[None]), len(psi))
+    whole, whole_cpu = frames_per_second(lambda: model.generate(psi[None]), len(psi), repeats=3, warmup=1)
     stream = model.stream(1)
-    live = frames_per_second(lambda: [stream.step(psi[t]) for t in range(2000)], 2000)
-    print(f"\nstreaming, B=1:  generate() {whole:8.0f} frames/s   step() {live:8.0f} frames/s")
+    live, live_cpu = frames_per_second(lambda: [stream.step(psi[t]) for t in range(2000)], 2000, repeats=3)
+    print(f"\nstreaming, B=1 (frames per wall-clock second, per CPU second):\n"
+          f"  generate() {whole:8.0f} {whole_cpu:8.0f}\n  step()     {live:8.0f} {live_cpu:8.0f}")
 
     positions = [100, 10_000, args.far]
     costs = streaming_costs(model, psi, positions)
-    print("\nper-frame cost of the cached decoder:")
+    print("\nper-frame cost of step(), median over 500 frames (wall clock, CPU):")
     for p in positions:
-        print(f"  frame {p:>7}: {costs[p][0] * 1e3:6.3f} ms   cache {costs[p][1]} values")
-    flat = costs[args.far][0] / costs[100][0]
-    print(f"  cost at frame {args.far} / frame 100 = {flat:.2f}")
+        wall, cpu, held = costs[p]
+        print(f"  frame {p:>7}: {wall * 1e3:6.3f} ms {cpu * 1e3:6.3f} ms = {1 / cpu:6.0f} frames per CPU second;"
+              f" stream holds {held} bytes of tensors")
+    flat, flat_cpu = costs[args.far][0] / costs[100][0], costs[args.far][1] / costs[100][1]
+    print(f"  cost at frame {args.far} / frame 100 = {flat:.2f} (wall clock), {flat_cpu:.2f} (CPU)")
 
-    print("\nFaceFormer-style full-prefix recomputation (per frame, best of 1 and %d threads):" % args.threads)
+    print(f"\nFaceFormer-style full-prefix recomputation (per frame, best of 1 and {args.threads} threads):")
     for prefix in (100, 600, 2000):
-        cost, threads = best_over_threads(lambda: recompute_cost(model, psi, prefix), args.threads)
-        print(f"  prefix {prefix:>5}: {cost * 1e3:8.2f} ms = {cost / costs[100][0]:6.1f} x streaming ({threads} thread)")
+        cost, threads = best_over_threads(lambda n=prefix: recompute_cost(model, psi, n), args.threads)
+        print(f"  prefix {prefix:>5}: {cost * 1e3:8.2f} ms = {cost / costs[100][0]:6.1f} x streaming "
+              f"({threads} thread)")
     clip = psi[None, :600]
     uncached, threads = best_over_threads(lambda: timed(lambda: model.generate_uncached(clip)), args.threads)
     cached = min(timed(lambda: model.generate(clip)) for _ in range(3))

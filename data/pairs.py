@@ -4,11 +4,14 @@ A *pair file* is an ``.npz`` holding one recording:
 - ``psi`` [T,55]: expression weights in ``data.expressions.EXPRESSION_NAMES`` order;
 - ``tau`` [T]: larynx slide in UV units of the larynx map, + = up the neck (``data.tau_track``);
 - ``fps``: frames per second of both (a scalar);
-- optional ``subject`` (a string naming the person), ``eta`` (larynx size, scalar) and
-  ``time`` [T] (seconds on the expression recording's clock, informative only).
+- optional ``subject`` (a string naming the person), ``take`` (a string naming the recording the
+  file was cut from), ``eta`` (larynx size, scalar) and ``time`` [T] (seconds on the expression
+  recording's clock, informative only).
 
-A *pairs folder* holds many such files; ``data.splits.split_by_file`` splits it into training and
-validation **by file**, so no recording is in both.
+A *pairs folder* holds many such files; :func:`split_by_take` splits it into training and validation
+**by take**, so clips cut from one recording are never on both sides.  A file without ``take`` belongs
+to the take its name gives without a trailing clip number (:func:`take_from_name`: ``anna_take2_clip07``
+and ``anna_take2_08`` are take ``anna_take2``; ``take3`` is ``take3``).
 
 Capture workflow: the larynx tracker writes a tau track (CSV ``frame,time,x_px,y_px,tau_px,tau,
 confidence``) and the face capture an expression recording (any format ``read_expressions``
@@ -28,6 +31,7 @@ a CSV without ``time``/``fps`` columns), ``expressions_fps`` (header-less or ``.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,9 +39,10 @@ import numpy as np
 from omegaconf import DictConfig
 
 from data.cli import run_cli
-from data.expressions import EXPRESSION_NAMES, NUM_EXPRESSIONS, ExpressionTrack, check_weights, read_expressions
 from data.errors import InputError
+from data.expressions import EXPRESSION_NAMES, NUM_EXPRESSIONS, ExpressionTrack, check_weights, read_expressions
 from data.files import save_npz
+from data.splits import split_by_file
 from data.tau_track import TauTrack, read_tau_track
 from data.timebase import resample_uniform
 
@@ -46,7 +51,8 @@ from data.timebase import resample_uniform
 class LarynxSequence:
     """One recording: psi [T,55] float32, tau [T] float32 (UV units), both at ``fps``.
 
-    ``subject`` names the person (None if unknown); ``eta`` is the larynx size if known.
+    ``subject`` names the person (None if unknown); ``eta`` is the larynx size if known; ``take`` names
+    the recording the sequence was cut from (None: the sequence is a recording of its own, ``name``).
     """
 
     psi: np.ndarray
@@ -55,11 +61,16 @@ class LarynxSequence:
     subject: str | None
     name: str
     eta: float | None = None
+    take: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.take is None:
+            self.take = self.name
 
     def __len__(self) -> int:
         return len(self.psi)
 
-    def resampled(self, fps: float) -> "LarynxSequence":
+    def resampled(self, fps: float) -> LarynxSequence:
         """The same recording linearly resampled to ``fps``."""
         if abs(fps - self.fps) < 1e-9 * fps:
             return self
@@ -67,7 +78,7 @@ class LarynxSequence:
         _, psi = resample_uniform(time, self.psi, fps)
         _, tau = resample_uniform(time, self.tau, fps)
         return LarynxSequence(psi.astype(np.float32), tau.astype(np.float32), float(fps), self.subject, self.name,
-                              self.eta)
+                              self.eta, self.take)
 
 
 # --------------------------------------------------------------------------- pair files
@@ -80,8 +91,22 @@ def _scalar(data, key: str, path: Path) -> float:
     return float(value.reshape(()))
 
 
+def take_from_name(stem: str) -> str:
+    """The take a pair file belongs to by its name: the stem without a trailing clip number
+    (``anna_take2_clip07``, ``anna_take2-08`` -> ``anna_take2``; ``take3`` stays ``take3``)."""
+    take = re.sub(r"[_\-. ]+(clip|part|seg|segment|chunk|piece|window)?[_\-. ]*\d+$", "", stem, flags=re.IGNORECASE)
+    return take or stem
+
+
+def _name(data, key: str, path: Path) -> str | None:
+    value = np.asarray(data[key])
+    if value.dtype.kind not in "US" or value.size != 1:
+        raise InputError(f"{path}: '{key}' is {value!r}, expected a name (string)")
+    return str(value.reshape(())) or None
+
+
 def load_pair(path: str | os.PathLike) -> LarynxSequence:
-    """Read and validate a pair file."""
+    """Read and validate a pair file (its take: the ``take`` entry, else :func:`take_from_name`)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: file not found")
@@ -113,14 +138,10 @@ def load_pair(path: str | os.PathLike) -> LarynxSequence:
     fps = _scalar(data, "fps", path)
     if fps <= 0:
         raise InputError(f"{path}: 'fps' is {fps:g}, expected a positive frame rate")
-    subject = None
-    if "subject" in data:
-        value = np.asarray(data["subject"])
-        if value.dtype.kind not in "US" or value.size != 1:
-            raise InputError(f"{path}: 'subject' is {value!r}, expected a name (string)")
-        subject = str(value.reshape(())) or None
+    subject = _name(data, "subject", path) if "subject" in data else None
+    take = (_name(data, "take", path) if "take" in data else None) or take_from_name(path.stem)
     eta = _scalar(data, "eta", path) if "eta" in data else None
-    return LarynxSequence(psi.astype(np.float32), tau.astype(np.float32), fps, subject, path.stem, eta)
+    return LarynxSequence(psi.astype(np.float32), tau.astype(np.float32), fps, subject, path.stem, eta, take)
 
 
 def save_pair(path: str | os.PathLike, sequence: LarynxSequence, time: np.ndarray | None = None) -> None:
@@ -131,6 +152,8 @@ def save_pair(path: str | os.PathLike, sequence: LarynxSequence, time: np.ndarra
         arrays["subject"] = np.str_(sequence.subject)
     if sequence.eta is not None:
         arrays["eta"] = np.float64(sequence.eta)
+    if sequence.take is not None:
+        arrays["take"] = np.str_(sequence.take)
     if time is not None:
         arrays["time"] = np.asarray(time, dtype=np.float64)
     save_npz(path, **arrays)
@@ -146,6 +169,23 @@ def load_pairs(folder: str | os.PathLike, fps: float | None = None) -> list[Lary
         raise InputError(f"{folder}: no .npz pair files; make them with python -m data.pairs")
     pairs = [load_pair(f) for f in files]
     return pairs if fps is None else [p.resampled(fps) for p in pairs]
+
+
+def split_by_take(pairs: list[LarynxSequence], val_fraction: float, seed: int,
+                  what: str = "take") -> tuple[list[LarynxSequence], list[LarynxSequence]]:
+    """(training, validation) pairs, no take on both sides: ``data.splits.split_by_file`` over the takes
+    (``round(val_fraction * takes)`` held out, drawn from ``seed``), each list in the input order.
+
+    With a single take (every file of one recording) the split falls back to files, and says so.
+    """
+    takes = sorted({p.take for p in pairs})
+    if len(takes) < 2:
+        if len(pairs) >= 2:
+            print(f"data.pairs: all {len(pairs)} pair files are one take ('{takes[0]}'): validation by file")
+        return split_by_file(pairs, val_fraction, seed, what.replace("take", "pair file"))
+    _, held = split_by_file(takes, val_fraction, seed, what)
+    held = set(held)
+    return [p for p in pairs if p.take not in held], [p for p in pairs if p.take in held]
 
 
 # --------------------------------------------------------------------------- alignment

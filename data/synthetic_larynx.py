@@ -3,31 +3,39 @@
 Units and shapes:
 - psi [T,55]: expression weights in [0, 1], ``data.expressions.EXPRESSION_NAMES`` order;
 - tau [T]: larynx slide in UV units of the larynx map, + = up the neck (``data.synthetic_tau``;
-  0.03 is about 1 cm), rest at about 0;
+  0.03 is about 1 cm), rest near 0;
 - fps: frames per second, explicit everywhere (default 30, the rate of iPhone face capture).
 
 The expression generator draws a talking face: phrases of syllables built from a small viseme
 table (jaw, lip spread, rounding, bilabial closure...), pauses, blinks, slow brow and gaze
 movements, tracker noise, and swallows.  A swallow is marked in the expressions by what a
-camera sees of it: the jaw closes, the lips close and press, the lower lip rolls in and the
-chin rises (``mouthShrugLower``) for about half a second.
+camera sees of it, in the subject's own way (their *swallow signature*: how much of the seal is a
+lip press, a lower-lip roll or a lip closure), with the jaw closed and the chin raised
+(``mouthShrugLower``), for about half a second.
 
 The larynx process :func:`larynx_response` is a *causal* function of psi (tau[t] depends on
 psi[:t+1] only), nonlinear and subject dependent:
-- articulation, lagged by 50-120 ms behind the face: the larynx lowers with jaw opening
-  (quadratic) and lip rounding and rises with lip spreading, low-passed by an 80 ms inertia;
-- effort: a saturating rise with the articulation speed integrated over ~1.5 s (phrases);
-- swallows: when the lip press (with the jaw closed) crosses a threshold, a swallow profile
-  (``data.synthetic_tau.swallow_profile``) starts, its amplitude set by the chin raise at that
-  moment; a swallow in progress ignores further crossings.
+- articulation, lagged behind the face: the larynx lowers with jaw opening (a power of it) and lip
+  rounding and rises with lip spreading, softly saturating, low-passed by a first- or second-order
+  inertia;
+- effort: a saturating rise with the articulation speed integrated over a second or more (phrases);
+- swallows: when the seal (the signature's mix of press, roll and closure, with the jaw closed)
+  crosses a threshold, a swallow profile (``data.synthetic_tau.swallow_profile``, with the subject's
+  own landmark levels and duration) starts, its amplitude set by the chin raise at that moment; a
+  swallow in progress ignores further crossings.
+Every factor is drawn per subject from the ranges of a :class:`GeneratorRanges`: the training
+subjects from :data:`TRAINING_RANGES`, held-out subjects from :func:`heldout_ranges` (longer lags,
+slower filters, gains and powers outside the training ranges, other signatures and swallow shapes),
+so a validation on them measures generalisation to people unlike the training ones.
 These are modelling choices that give the learner a known, learnable target with the traits of
 the real problem (lag, saturation, thresholds, memory, per-subject gains), not measured laws.
 Training and held-out subjects are disjoint by id (held-out ids start at ``HELDOUT_SUBJECT_START``).
 """
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
@@ -35,7 +43,13 @@ from scipy.signal import lfilter
 
 from data.expressions import EXPRESSION_NAMES, NUM_EXPRESSIONS
 from data.pairs import LarynxSequence
-from data.synthetic_tau import SWALLOW_AMPLITUDE, SWALLOW_DURATION, swallow_profile
+from data.synthetic_tau import (
+    SWALLOW_AMPLITUDE,
+    SWALLOW_DURATION,
+    SWALLOW_LANDMARK_LEVELS,
+    SwallowShape,
+    swallow_profile,
+)
 
 INDEX = {name: k for k, name in enumerate(EXPRESSION_NAMES)}
 HELDOUT_SUBJECT_START = 10_000  # subject ids >= this are never used for training
@@ -58,7 +72,10 @@ VOWELS: dict[str, dict[str, float]] = {
 }
 MOUTH = [k for k, name in enumerate(EXPRESSION_NAMES) if name.startswith(("mouth", "jaw"))]
 
-SWALLOW_PRESS_THRESHOLD = 0.35  # lip press (jaw closed) that starts a swallow; speech presses stay below
+# Seal (the signature's mix of press, roll and closure, jaw closed) that starts a swallow.  Speech stays
+# below it except where a viseme happens to seal hard in a subject's signature (FV's lower-lip roll):
+# the cue is not unambiguous.
+SWALLOW_SEAL_THRESHOLD = 0.35
 
 
 def _vector(weights: dict[str, float]) -> np.ndarray:
@@ -68,45 +85,117 @@ def _vector(weights: dict[str, float]) -> np.ndarray:
     return out
 
 
+Range = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class GeneratorRanges:
+    """The ranges each subject factor is drawn from (uniformly; ``gain`` log-uniformly).
+
+    ``lag`` (s) of articulation behind the face; ``inertia`` (s) the articulation low-pass time constant,
+    ``second_order`` the share of subjects whose low-pass is second order (critically damped);
+    ``gain`` the factor on all articulation gains; ``jaw_power`` the exponent of the jaw term;
+    ``saturation`` (tau) the knee of the soft clip of the articulation posture; ``effort_time`` (s) the
+    integration time of effort and ``effort_gain`` its size (tau); ``signature`` the range of each of the
+    three seal weights (press, roll, closure) before normalisation; ``swallow_duration`` and
+    ``swallow_amplitude`` factors of SWALLOW_DURATION / SWALLOW_AMPLITUDE; ``dip`` and ``undershoot``
+    the swallow's valley levels (fractions of its amplitude; the defaults' are -0.12 and -0.22).
+    """
+
+    lag: Range = (0.03, 0.15)
+    inertia: Range = (0.04, 0.12)
+    second_order: float = 0.5
+    gain: Range = (0.6, 1.7)
+    jaw_power: Range = (1.6, 2.4)
+    saturation: Range = (0.015, 0.03)
+    effort_time: Range = (1.0, 2.0)
+    effort_gain: Range = (0.004, 0.009)
+    signature: Range = (0.0, 1.0)
+    swallow_duration: Range = (0.85, 1.15)
+    swallow_amplitude: Range = (0.75, 1.25)
+    dip: Range = (-0.2, -0.05)
+    undershoot: Range = (-0.3, -0.1)
+
+
+TRAINING_RANGES = GeneratorRanges()
+# Held-out people (heldout_ranges(1.0)): each factor outside or at the edge of its training range.
+HELDOUT_RANGES = GeneratorRanges(
+    lag=(0.15, 0.25), inertia=(0.12, 0.2), second_order=0.5, gain=(0.45, 2.3), jaw_power=(1.2, 1.6),
+    saturation=(0.01, 0.015), effort_time=(2.0, 2.5), effort_gain=(0.009, 0.012), signature=(0.0, 1.0),
+    swallow_duration=(1.15, 1.3), swallow_amplitude=(0.6, 1.4), dip=(-0.05, 0.0), undershoot=(-0.45, -0.3))
+
+
+def heldout_ranges(shift: float = 1.0) -> GeneratorRanges:
+    """Ranges ``shift`` of the way from :data:`TRAINING_RANGES` to :data:`HELDOUT_RANGES` (0: the training
+    generator, 1: the held-out one; each bound interpolated linearly)."""
+    values = {}
+    for f in dataclasses.fields(GeneratorRanges):
+        a, b = getattr(TRAINING_RANGES, f.name), getattr(HELDOUT_RANGES, f.name)
+        if isinstance(a, tuple):
+            values[f.name] = tuple((1 - shift) * x + shift * y for x, y in zip(a, b))
+        else:
+            values[f.name] = (1 - shift) * a + shift * b
+    return GeneratorRanges(**values)
+
+
 @dataclass(frozen=True)
 class SubjectParams:
     """One synthetic subject: how they move their face and how their larynx follows.
 
-    Expression style: ``neutral`` [55] offsets, ``articulation`` gain, ``syllable_rate`` (Hz).
-    Larynx: ``rest`` (tau), ``lag`` (s), gains of the articulation terms (tau per unit weight),
-    ``effort_gain`` (tau), ``swallow_amplitude`` (tau), ``swallow_duration`` (s), ``eta`` (larynx size).
+    Expression style: ``neutral`` [55] offsets, ``articulation`` gain, ``syllable_rate`` (Hz),
+    ``signature`` [3] the weights of lip press, lower-lip roll and lip closure in their swallow seal
+    (sum 1).  Larynx: ``rest`` (tau), ``lag`` (s), ``inertia`` (s) and ``filter_order`` (1 or 2) of the
+    articulation low-pass, gains of the articulation terms (tau per unit weight), ``jaw_power``,
+    ``saturation`` (tau), ``effort_gain`` (tau) and ``effort_time`` (s), ``swallow_amplitude`` (tau),
+    ``swallow_duration`` (s), ``swallow_levels`` [5] (landmark levels of the swallow, fractions of its
+    amplitude), ``eta`` (larynx size).
     """
 
     subject: int
     neutral: np.ndarray
     articulation: float
     syllable_rate: float
+    signature: np.ndarray
     rest: float
     lag: float
+    inertia: float
+    filter_order: int
     jaw_gain: float
     spread_gain: float
     round_gain: float
+    jaw_power: float
+    saturation: float
     effort_gain: float
+    effort_time: float
     swallow_amplitude: float
     swallow_duration: float
+    swallow_levels: np.ndarray
     eta: float
 
 
-def subject_params(subject: int, seed: int) -> SubjectParams:
-    """The parameters of subject ``subject``, a deterministic function of (seed, subject)."""
+def subject_params(subject: int, seed: int, ranges: GeneratorRanges = TRAINING_RANGES) -> SubjectParams:
+    """The parameters of subject ``subject``, a deterministic function of (seed, subject, ranges)."""
     rng = np.random.default_rng([seed, subject, 1])
     neutral = np.zeros(NUM_EXPRESSIONS)
     for name in ("browInnerUp_L", "browInnerUp_R", "mouthSmile_L", "mouthSmile_R", "eyeSquint_L", "eyeSquint_R",
                  "mouthClose", "cheekSquint_L", "cheekSquint_R", "mouthRollUpper"):
         neutral[INDEX[name]] = rng.uniform(0.0, 0.06)
-    eta = rng.uniform(0.8, 1.2)
+    r = ranges
+    gain = float(np.exp(rng.uniform(np.log(r.gain[0]), np.log(r.gain[1]))))
+    signature = rng.uniform(*r.signature, 3) + 1e-3
+    levels = SWALLOW_LANDMARK_LEVELS.copy()
+    levels[1], levels[3] = rng.uniform(*r.dip), rng.uniform(*r.undershoot)
     return SubjectParams(
         subject=subject, neutral=neutral, articulation=rng.uniform(0.75, 1.25), syllable_rate=rng.uniform(4.0, 5.5),
-        rest=rng.normal(0.0, 0.0005), lag=rng.uniform(0.05, 0.12),
-        jaw_gain=rng.uniform(0.025, 0.032), spread_gain=rng.uniform(0.015, 0.019), round_gain=rng.uniform(0.015, 0.019),
-        effort_gain=rng.uniform(0.0065, 0.0075),
-        swallow_amplitude=SWALLOW_AMPLITUDE * rng.uniform(0.92, 1.08),
-        swallow_duration=SWALLOW_DURATION * rng.uniform(0.97, 1.03), eta=eta,
+        signature=signature / signature.sum(), rest=rng.normal(0.0, 0.002), lag=rng.uniform(*r.lag),
+        inertia=rng.uniform(*r.inertia), filter_order=2 if rng.random() < r.second_order else 1,
+        jaw_gain=gain * rng.uniform(0.025, 0.032), spread_gain=gain * rng.uniform(0.015, 0.019),
+        round_gain=gain * rng.uniform(0.015, 0.019), jaw_power=rng.uniform(*r.jaw_power),
+        saturation=rng.uniform(*r.saturation), effort_gain=rng.uniform(*r.effort_gain),
+        effort_time=rng.uniform(*r.effort_time),
+        swallow_amplitude=SWALLOW_AMPLITUDE * rng.uniform(*r.swallow_amplitude),
+        swallow_duration=SWALLOW_DURATION * rng.uniform(*r.swallow_duration), swallow_levels=levels,
+        eta=rng.uniform(0.8, 1.2),
     )
 
 
@@ -178,10 +267,14 @@ def generate_expressions(num_frames: int, fps: float, params: SubjectParams, rng
         onset = rng.uniform(start + 0.1, stop - 0.9)
         rise, hold = rng.uniform(0.1, 0.35), rng.uniform(0.3, 0.6)
         envelope = _pulse(time, onset, rise, hold, 0.15)
-        press, chin = rng.uniform(0.5, 0.95), rng.uniform(0.15, 0.65)
+        seal, chin = rng.uniform(0.5, 0.95), rng.uniform(0.15, 0.65)
+        # The seal in the subject's signature: channel c at seal * w_c / |w|^2, so that the response's
+        # weighted seal (larynx_response) is `seal`; a little closure and roll whatever the signature.
+        press, roll, close = np.minimum(1.0, seal * params.signature / np.sum(params.signature ** 2))
         psi[:, INDEX["jawOpen"]] *= 1 - envelope
-        for name, weight in (("mouthPress_L", press), ("mouthPress_R", press * rng.uniform(0.9, 1.1)),
-                             ("mouthClose", 0.5 * press), ("mouthRollLower", 0.3), ("mouthShrugLower", chin)):
+        for name, weight in (("mouthPress_L", press), ("mouthPress_R", press * rng.uniform(1.0, 1.1)),
+                             ("mouthClose", max(close, 0.1)), ("mouthRollLower", max(roll, 0.1)),
+                             ("mouthShrugLower", chin)):
             psi[:, INDEX[name]] = np.maximum(psi[:, INDEX[name]], weight * envelope)
 
     # Blinks, slow brow and gaze movements, a smile now and then.
@@ -202,10 +295,20 @@ def generate_expressions(num_frames: int, fps: float, params: SubjectParams, rng
 # --------------------------------------------------------------------------- larynx
 
 
-def _low_pass(x: np.ndarray, fps: float, time_constant: float) -> np.ndarray:
-    """Causal first-order low-pass (exponential smoothing) along axis 0, starting at rest (0)."""
+def _low_pass(x: np.ndarray, fps: float, time_constant: float, order: int = 1) -> np.ndarray:
+    """``order`` cascaded causal first-order low-passes (exponential smoothing) along axis 0, from rest (0)."""
     a = np.exp(-1.0 / (fps * time_constant))
-    return lfilter([1 - a], [1, -a], x, axis=0)
+    for _ in range(order):
+        x = lfilter([1 - a], [1, -a], x, axis=0)
+    return x
+
+
+def seal_strength(psi: np.ndarray, params: SubjectParams) -> np.ndarray:
+    """The subject's swallow cue [T]: their signature's mix of lip press (the weaker side), lower-lip roll and
+    lip closure, times (1 - jawOpen)."""
+    press = np.minimum(psi[:, INDEX["mouthPress_L"]], psi[:, INDEX["mouthPress_R"]])
+    parts = np.stack([press, psi[:, INDEX["mouthRollLower"]], psi[:, INDEX["mouthClose"]]], axis=1)
+    return (parts @ params.signature) * (1 - psi[:, INDEX["jawOpen"]])
 
 
 def larynx_response(psi: np.ndarray, fps: float, params: SubjectParams) -> np.ndarray:
@@ -220,23 +323,25 @@ def larynx_response(psi: np.ndarray, fps: float, params: SubjectParams) -> np.nd
     jaw = w["jawOpen"]
     spread = 0.5 * (w["mouthStretch_L"] + w["mouthStretch_R"]) * (1 - jaw)
     rounding = w["mouthPucker"] * (0.5 + w["mouthFunnel"])
-    posture = params.spread_gain * spread - params.round_gain * rounding - params.jaw_gain * jaw**2
-    articulation = _low_pass(posture, fps, 0.08)
+    posture = params.spread_gain * spread - params.round_gain * rounding - params.jaw_gain * jaw ** params.jaw_power
+    posture = params.saturation * np.tanh(posture / params.saturation)  # soft clip: the larynx's range
+    articulation = _low_pass(posture, fps, params.inertia, params.filter_order)
 
     speed = np.abs(np.diff(lagged[:, MOUTH], axis=0, prepend=lagged[:1, MOUTH])).sum(axis=1) * fps
-    effort = params.effort_gain * np.tanh(_low_pass(speed, fps, 1.5) / 4.0)
+    effort = params.effort_gain * np.tanh(_low_pass(speed, fps, params.effort_time) / 4.0)
 
     # The swallow reflex follows the lip seal without the subject's articulation lag.
-    press = np.minimum(now["mouthPress_L"], now["mouthPress_R"]) * (1 - now["jawOpen"])
+    seal = seal_strength(psi, params)
     time = np.arange(num_frames) / fps
     swallows = np.zeros(num_frames)
-    crossings = np.flatnonzero((press[1:] >= SWALLOW_PRESS_THRESHOLD) & (press[:-1] < SWALLOW_PRESS_THRESHOLD)) + 1
+    crossings = np.flatnonzero((seal[1:] >= SWALLOW_SEAL_THRESHOLD) & (seal[:-1] < SWALLOW_SEAL_THRESHOLD)) + 1
+    shape = SwallowShape(levels=params.swallow_levels)
     busy_until = -np.inf
     for frame in crossings:
         if time[frame] < busy_until:
             continue
         amplitude = params.swallow_amplitude * (0.55 + 1.2 * now["mouthShrugLower"][frame])
-        swallows += swallow_profile(time, time[frame], params.swallow_duration, amplitude)
+        swallows += swallow_profile(time, time[frame], params.swallow_duration, amplitude, shape)
         busy_until = time[frame] + params.swallow_duration
     return params.rest + articulation + effort + swallows
 
@@ -257,14 +362,15 @@ def split_subjects(num_train: int, num_heldout: int) -> tuple[list[int], list[in
 
 
 def make_sequence(subject: int, index: int, num_frames: int, fps: float, seed: int,
-                  tau_noise: float = 0.0005, **expression_options) -> LarynxSequence:
-    """Sequence ``index`` of ``subject``: deterministic from (seed, subject, index).
+                  tau_noise: float = 0.0005, ranges: GeneratorRanges = TRAINING_RANGES,
+                  **expression_options) -> LarynxSequence:
+    """Sequence ``index`` of ``subject``: deterministic from (seed, subject, index, ranges).
 
     ``tau_noise`` (tau units) is the standard deviation of white measurement noise on tau, as a tracker adds;
-    ``expression_options`` go to :func:`generate_expressions` (swallows_per_minute, blinks_per_minute,
-    expression_noise).
+    ``ranges`` those the subject's factors are drawn from; ``expression_options`` go to
+    :func:`generate_expressions` (swallows_per_minute, blinks_per_minute, expression_noise).
     """
-    params = subject_params(subject, seed)
+    params = subject_params(subject, seed, ranges)
     rng = np.random.default_rng([seed, subject, 2, index])
     psi = generate_expressions(num_frames, fps, params, rng, **expression_options)
     tau = larynx_response(psi, fps, params) + tau_noise * rng.standard_normal(num_frames)

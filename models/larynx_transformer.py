@@ -1,4 +1,4 @@
-"""Expression -> larynx transformer (FaceFormer-style) with a streaming decoder of bounded cost.
+"""Expression -> larynx transformer (after FaceFormer) with a streaming decoder of bounded cost.
 
 FaceFormer (Fan et al., CVPR 2022) regresses motion autoregressively: past motion frames are the
 decoder's tokens (plus a periodic positional encoding and a style embedding), causal
@@ -14,38 +14,109 @@ relative offsets, and every attention looks at a fixed window of past frames, so
 - ``generate_uncached`` is FaceFormer's decoding (recompute the whole prefix at every frame),
   kept as the reference the cache must match.
 
+Paired captures come in minutes, not hours, and the defaults (:class:`LarynxTransformerConfig`) are
+chosen for that regime on real expressions (``benchmarks/bench_larynx_real.py``; figures in
+``benchmarks/README.md``):
+- the expression encoder is a stack of dilated causal convolutions (a receptive field of
+  ``1 + (kernel-1) * sum(dilations)`` frames, about two seconds) followed by a bank of learnt
+  first-order low-passes (:class:`Smoothing`: the larynx's inertia is one), and its features are added
+  to the decoder's tokens, so the self-attention window sees past expressions, not only past tau;
+- ``period`` 1: the attention bias falls per frame (ALiBi slopes 1/4 ... 1/256 per frame: time
+  scales of 4 to 256 frames) and the positional encoding is constant; FaceFormer's period of
+  speech-animation frames (25 at 25 fps) has no counterpart in the larynx;
+- ``feedback`` off: feeding the previous tau back (FaceFormer's autoregression) is available, but at
+  inference that tau is the model's own prediction, a function of the psi the tokens already see; on
+  takes unlike the training ones it drifts;
+- one decoder block (as FaceFormer) and dropout 0.1.
+
 Conventions (shapes carry a batch B and frames T):
 - psi [B,T,55]: expression weights in ``data.expressions.EXPRESSION_NAMES`` order, at
   ``model.fps`` frames per second (the rate of the training data);
 - tau [B,T]: larynx slide in UV units of the larynx map, + = up the neck (``data.synthetic_tau``).
-  Inside the network tau is normalised, ``(tau - tau_mean) / tau_scale`` (both in the config);
+  Inside the network tau is normalised, ``(tau - tau_mean) / tau_scale`` (both from the data);
 - ``previous_tau`` [B,T]: the tau fed to frame t, i.e. tau of frame t-1 (``tau_mean`` at t = 0),
   see :meth:`LarynxTransformer.shift`;
 - frame t's prediction depends on psi[:, :t+1] and previous_tau[:, :t+1] only (causal);
 - subject [B] long: index into the style table, 0 = unknown subject (average style); names are
-  ``model_config["subjects"]`` (index i+1 is ``subjects[i]``);
+  ``model.subjects`` (index i+1 is ``subjects[i]``);
 - eta [B]: larynx size, an input only when ``use_eta`` (1 = template size).
 """
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from data.expressions import NUM_EXPRESSIONS
+from data.cli import register_config
 from data.errors import InputError
+from data.expressions import NUM_EXPRESSIONS
 
-# Sizes come from configs/model/larynx_transformer.yaml (their one home, documented there).
-SIZES = ("d_model", "n_heads", "n_layers", "d_ff", "window", "cross_window", "period", "expression_layers",
-         "expression_kernel", "dropout", "use_eta")
-# From the training data, filled in by the task: the frame rate of psi and tau (frames per second), the
-# training subject names (style index i+1 is subjects[i], 0 the unknown subject), the tau normalisation
-# (UV units).
-DATA_KEYS = ("fps", "subjects", "tau_mean", "tau_scale")
+
+@dataclass
+class LarynxTransformerConfig:
+    """The sizes of the network (hydra's ``model`` group of ``task=larynx_transformer``).
+
+    The defaults are chosen for a few thousand to a few tens of thousands of training frames at 30 fps
+    (``benchmarks/README.md``, "Expression -> larynx").
+    """
+
+    d_model: int = 64
+    n_heads: int = 4
+    n_layers: int = 1          # decoder blocks (FaceFormer uses one)
+    d_ff: int = 128            # hidden width of each block's MLP
+    window: int = 64           # frames each self-attention sees (the key/value cache size)
+    cross_window: int = 1      # expression frames frame t cross-attends to (1 = the aligned frame, as FaceFormer)
+    period: int = 1            # frames: period of the positional encoding and of the attention bias
+    expression_kernel: int = 3
+    # Dilation of each causal convolution of the expression encoder; the receptive field is
+    # 1 + (expression_kernel - 1) * sum(expression_dilations) frames.
+    expression_dilations: list[int] = field(default_factory=lambda: [1, 2, 4, 8, 16])
+    # Longest initial time constant (frames) of the encoder's bank of learnt low-passes (0: none).
+    smoothing_frames: float = 128.0
+    dropout: float = 0.1       # on the expression features, attention outputs and MLP outputs
+    # Feed the previous frame's tau back into the tokens (FaceFormer's autoregression).  At inference the
+    # fed-back tau is the model's own prediction, a function of the past psi the tokens already see, so it
+    # adds no information, only drift on takes unlike the training ones (benchmarks/README.md).
+    feedback: bool = False
+    use_eta: bool = False      # feed the larynx size eta to the motion encoder
+
+    def __post_init__(self) -> None:
+        if self.d_model % self.n_heads or (self.d_model // self.n_heads) % 2:
+            raise ValueError(f"d_model {self.d_model} must split into {self.n_heads} heads of even size")
+        for name in ("n_layers", "d_ff", "window", "cross_window", "period", "expression_kernel"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if any(int(d) < 1 for d in self.expression_dilations):
+            raise ValueError(f"expression_dilations must be positive, got {list(self.expression_dilations)}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+
+    @property
+    def receptive_field(self) -> int:
+        """Frames of psi the expression encoder's output at frame t depends on (t and before)."""
+        return 1 + (self.expression_kernel - 1) * sum(int(d) for d in self.expression_dilations)
+
+
+@dataclass
+class LarynxDataFields:
+    """What the model takes from its training data (filled in by the task, stored in the checkpoint)."""
+
+    fps: float                 # frames per second of psi and tau
+    subjects: list[str]        # training subject names: style index i+1 is subjects[i], 0 the unknown subject
+    tau_mean: float            # tau normalisation (UV units)
+    tau_scale: float
+
+
+register_config("larynx_transformer_schema", LarynxTransformerConfig, group="model")
+
+SIZES = tuple(f.name for f in dataclasses.fields(LarynxTransformerConfig))
+DATA_KEYS = tuple(f.name for f in dataclasses.fields(LarynxDataFields))
 
 
 @contextlib.contextmanager
@@ -110,208 +181,14 @@ def banded_attention(q: Tensor, k: Tensor, v: Tensor, slopes: Tensor, period: in
     return torch.cat(out, dim=2)
 
 
-class CausalConv(nn.Module):
-    """Temporal convolution over past frames only: y[t] = sum_j W_j x[t-kernel+1+j] (zeros before frame 0)."""
-
-    def __init__(self, channels: int, kernel: int):
-        super().__init__()
-        self.kernel = kernel
-        self.conv = nn.Conv1d(channels, channels, kernel)
-
-    def forward(self, x: Tensor, history: Tensor | None = None) -> Tensor:
-        """x [B,T,C], history [B,kernel-1,C] (the frames before x; zeros if None) -> [B,T,C]."""
-        if history is None:
-            history = x.new_zeros(x.shape[0], self.kernel - 1, x.shape[2])
-        return self.conv(torch.cat([history, x], dim=1).transpose(1, 2)).transpose(1, 2)
+def split_heads(x: Tensor, n_heads: int) -> Tensor:
+    """[B,T,d] -> [B,H,T,d/H]."""
+    return x.view(x.shape[0], x.shape[1], n_heads, -1).transpose(1, 2)
 
 
-class ExpressionEncoder(nn.Module):
-    """psi [B,T,55] -> features [B,T,d]: a linear projection, then residual causal convolutions."""
-
-    def __init__(self, d_model: int, layers: int, kernel: int):
-        super().__init__()
-        self.project = nn.Linear(NUM_EXPRESSIONS, d_model)
-        self.temporal = nn.ModuleList(CausalConv(d_model, kernel) for _ in range(layers))
-
-    def forward(self, psi: Tensor, history: list[Tensor] | None = None) -> tuple[Tensor, list[Tensor]]:
-        """Encode frames after ``history`` (per layer, the last kernel-1 inputs); returns (features, new history)."""
-        x = self.project(psi)
-        new_history = []
-        for i, conv in enumerate(self.temporal):
-            past = None if history is None else history[i]
-            joined = x if past is None else torch.cat([past, x], dim=1)
-            new_history.append(_tail(joined, conv.kernel - 1))
-            x = x + F.gelu(conv(x, past), approximate="tanh")
-        return x, new_history
-
-
-def _tail(x: Tensor, count: int) -> Tensor:
-    """The last ``count`` frames of x [B,T,C], zero-padded in front when T < count."""
-    if x.shape[1] >= count:
-        return x[:, x.shape[1] - count:]
-    return torch.cat([x.new_zeros(x.shape[0], count - x.shape[1], x.shape[2]), x], dim=1)
-
-
-class Block(nn.Module):
-    """Pre-norm decoder block: periodic-biased causal self-attention, aligned cross-attention, MLP."""
-
-    def __init__(self, cfg: dict):
-        super().__init__()
-        d, self.n_heads = cfg["d_model"], cfg["n_heads"]
-        self.window, self.cross_window, self.period = int(cfg["window"]), int(cfg["cross_window"]), int(cfg["period"])
-        self.register_buffer("slopes", alibi_slopes(self.n_heads), persistent=False)
-        self.ln_self, self.ln_mlp = nn.LayerNorm(d), nn.LayerNorm(d)
-        self.qkv = nn.Linear(d, 3 * d)
-        self.self_out = nn.Linear(d, d)
-        # With a one-frame cross window the only key is the aligned frame: attention returns its value, so
-        # neither a query nor keys are needed and cross_kv projects values only.
-        self.ln_cross = nn.LayerNorm(d) if self.cross_window > 1 else None
-        self.cross_q = nn.Linear(d, d) if self.cross_window > 1 else None
-        self.cross_kv = nn.Linear(d, (2 if self.cross_window > 1 else 1) * d)
-        self.cross_out = nn.Linear(d, d)
-        self.mlp = nn.Sequential(nn.Linear(d, cfg["d_ff"]), nn.GELU(approximate="tanh"), nn.Linear(cfg["d_ff"], d))
-        self.dropout = nn.Dropout(cfg["dropout"])
-
-    def heads(self, x: Tensor) -> Tensor:
-        """[B,T,d] -> [B,H,T,d/H]."""
-        return x.view(x.shape[0], x.shape[1], self.n_heads, -1).transpose(1, 2)
-
-    def merge(self, x: Tensor) -> Tensor:
-        """[B,H,T,d/H] -> [B,T,d]."""
-        return x.transpose(1, 2).reshape(x.shape[0], x.shape[2], -1)
-
-    def forward(self, x: Tensor, memory: Tensor) -> Tensor:
-        """x [B,T,d] tokens, memory [B,T,d] encoded expressions -> [B,T,d]."""
-        q, k, v = map(self.heads, self.qkv(self.ln_self(x)).chunk(3, dim=-1))
-        a = banded_attention(q, k, v, self.slopes, self.period, self.window)
-        x = x + self.dropout(self.self_out(self.merge(a)))
-        if self.cross_window == 1:
-            a = self.cross_kv(memory)  # attention over a single key returns its value
-        else:
-            q = self.heads(self.cross_q(self.ln_cross(x)))
-            k, v = map(self.heads, self.cross_kv(memory).chunk(2, dim=-1))
-            a = self.merge(banded_attention(q, k, v, self.slopes, 1, self.cross_window))  # bias: -slope * offset
-        x = x + self.dropout(self.cross_out(a))
-        return x + self.dropout(self.mlp(self.ln_mlp(x)))
-
-
-class LarynxTransformer(nn.Module):
-    """tau from psi: autoregressive over tau, cross-attending to the expressions (see module docstring)."""
-
-    def __init__(self, cfg: dict):
-        super().__init__()
-        self.config = dict(cfg)
-        d = cfg["d_model"]
-        if d % cfg["n_heads"] or (d // cfg["n_heads"]) % 2:
-            raise ValueError(f"d_model {d} must split into {cfg['n_heads']} heads of even size")
-        self.fps = float(cfg["fps"])
-        self.window, self.cross_window, self.period = int(cfg["window"]), int(cfg["cross_window"]), int(cfg["period"])
-        self.subjects = [str(s) for s in cfg["subjects"]]
-        self.use_eta = bool(cfg["use_eta"])
-        self.register_buffer("tau_mean", torch.tensor(float(cfg["tau_mean"])), persistent=False)
-        self.register_buffer("tau_scale", torch.tensor(float(cfg["tau_scale"])), persistent=False)
-        self.register_buffer("positional", periodic_encoding(torch.arange(self.period), d, self.period), persistent=False)
-        self.expression = ExpressionEncoder(d, cfg["expression_layers"], cfg["expression_kernel"])
-        self.motion = nn.Linear(2 if self.use_eta else 1, d)
-        self.style = nn.Embedding(len(self.subjects) + 1, d)
-        self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg["n_layers"]))
-        self.ln_out = nn.LayerNorm(d)
-        self.head = nn.Linear(d, 1)
-        nn.init.zeros_(self.style.weight)
-        nn.init.normal_(self.head.weight, std=0.01)
-        nn.init.zeros_(self.head.bias)
-
-    # ------------------------------------------------------------------ helpers
-
-    def subject_index(self, subject: str | None) -> int:
-        """Style index of a subject name (0 for None = unknown subject)."""
-        if subject is None:
-            return 0
-        if str(subject) not in self.subjects:
-            known = ", ".join(self.subjects[:20]) + (" ..." if len(self.subjects) > 20 else "")
-            raise InputError(f"subject '{subject}' was not in the training data (known: {known or 'none'}); "
-                             f"leave subject unset for the average style")
-        return self.subjects.index(str(subject)) + 1
-
-    def shift(self, tau: Tensor) -> Tensor:
-        """previous_tau for teacher forcing: [tau_mean, tau[0], ..., tau[T-2]] per row of tau [B,T]."""
-        return torch.cat([self.tau_mean.expand(tau.shape[0], 1).to(tau.dtype), tau[:, :-1]], dim=1)
-
-    def token_base(self, batch_size: int, subject: Tensor | None, eta: Tensor | None) -> Tensor:
-        """The part of the motion tokens that does not depend on tau: [B,period,d].
-
-        A token is ``motion(previous normalised tau [, eta - 1]) + positional(t mod period) + style``;
-        the motion encoder is linear, so everything but ``previous * motion.weight[:, 0]`` is a table
-        over the period.
-        """
-        base = (self.motion.bias + self.positional)[None]  # [1,period,d]
-        style = self.style.weight[:1] if subject is None else self.style(subject)  # [1 or B,d]
-        base = base + style[:, None, :]
-        if self.use_eta:
-            if eta is None:
-                raise ValueError("this model takes eta (use_eta); pass eta [B]")
-            base = base + (eta.to(base.dtype) - 1.0)[:, None, None] * self.motion.weight[:, 1]
-        return base.expand(batch_size, -1, -1)
-
-    def _tokens(self, previous_tau: Tensor, subject: Tensor | None, eta: Tensor | None) -> Tensor:
-        """Motion tokens [B,T,d] for previous_tau [B,T] (UV units) at frames 0..T-1."""
-        base = self.token_base(previous_tau.shape[0], subject, eta)
-        positions = torch.arange(previous_tau.shape[1]) % self.period
-        normalised = (previous_tau - self.tau_mean) / self.tau_scale
-        return base[:, positions] + normalised[..., None] * self.motion.weight[:, 0]
-
-    def to_tau(self, normalised: Tensor) -> Tensor:
-        """Normalised tau [...] (the network's output) -> tau [...] in UV units."""
-        return self.tau_mean + self.tau_scale * normalised
-
-    def _readout(self, x: Tensor) -> Tensor:
-        """Hidden states [...,d] -> tau [...] in UV units."""
-        return self.to_tau(self.head(self.ln_out(x))[..., 0])
-
-    # ------------------------------------------------------------------ teacher forcing
-
-    def forward(self, psi: Tensor, previous_tau: Tensor, subject: Tensor | None = None,
-                eta: Tensor | None = None) -> Tensor:
-        """Teacher-forced tau [B,T] (UV units) from psi [B,T,55] and previous_tau [B,T] (see ``shift``)."""
-        memory, _ = self.expression(psi)
-        x = self._tokens(previous_tau, subject, eta)
-        for block in self.blocks:
-            x = block(x, memory)
-        return self._readout(x)
-
-    # ------------------------------------------------------------------ decoding
-
-    def stream(self, batch_size: int = 1, subject: Tensor | None = None, eta: Tensor | None = None) -> "LarynxStream":
-        """A frame-by-frame decoder (see :class:`LarynxStream`)."""
-        return LarynxStream(self, batch_size, subject, eta)
-
-    @torch.inference_mode()
-    def generate(self, psi: Tensor, subject: Tensor | None = None, eta: Tensor | None = None,
-                 chunk: int = 1024) -> Tensor:
-        """Autoregressive tau [B,T] (UV units) from psi [B,T,55], streamed with the cache (any length).
-
-        The expression side (encoder, cross-attention inputs) is computed ``chunk`` frames at a time,
-        the autoregressive side frame by frame; memory is O(chunk + window) beyond input and output.
-        """
-        stream = self.stream(psi.shape[0], subject, eta)
-        out = torch.empty(psi.shape[:2], dtype=psi.dtype)
-        for start in range(0, psi.shape[1], chunk):
-            cross = stream.encode(psi[:, start:start + chunk])
-            with single_thread():
-                for t in range(len(cross[0])):
-                    out[:, start + t] = stream.advance([frames[t] for frames in cross])
-        return self.to_tau(out)
-
-    @torch.no_grad()
-    def generate_uncached(self, psi: Tensor, subject: Tensor | None = None, eta: Tensor | None = None) -> Tensor:
-        """Reference decoding as FaceFormer does it: rerun ``forward`` on the whole prefix at every frame (O(T^2))."""
-        previous = self.tau_mean.expand(psi.shape[0], 1).to(psi.dtype)
-        out = []
-        for t in range(psi.shape[1]):
-            tau = self.forward(psi[:, : t + 1], previous, subject, eta)[:, -1]
-            out.append(tau)
-            previous = torch.cat([previous, tau[:, None]], dim=1)
-        return torch.stack(out, dim=1)
+def merge_heads(x: Tensor) -> Tensor:
+    """[B,H,T,d/H] -> [B,T,d]."""
+    return x.transpose(1, 2).reshape(x.shape[0], x.shape[2], -1)
 
 
 class WindowCache:
@@ -350,86 +227,433 @@ def attend_one(q: Tensor, keys: Tensor, values: Tensor, bias: Tensor) -> Tensor:
     return torch.bmm(weights.transpose(1, 2), values.flatten(0, 1)).view(batch, heads * dh)
 
 
+def step_bias(slopes: Tensor, period: int, window: int, batch: int) -> Tensor:
+    """Biases [B*H,window,1] of one query over keys at offsets window-1, ..., 0 (see :func:`attend_one`);
+    the last n rows serve the first frames, when only n keys exist."""
+    offsets = torch.arange(window - 1, -1, -1)[None, :]
+    return relative_bias(offsets, slopes, period, window)[:, 0].repeat(batch, 1)[:, :, None]
+
+
+class SelfAttention(nn.Module):
+    """Causal self-attention over the last ``window`` frames with the periodic ALiBi-style bias."""
+
+    def __init__(self, d_model: int, n_heads: int, window: int, period: int):
+        super().__init__()
+        self.n_heads, self.window, self.period = n_heads, window, period
+        self.register_buffer("slopes", alibi_slopes(n_heads), persistent=False)
+        self.qkv = nn.Linear(d_model, 3 * d_model)
+        self.out = nn.Linear(d_model, d_model)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x [B,T,d] (normalised tokens) -> [B,T,d], frame t attending to frames t-window+1..t."""
+        q, k, v = (split_heads(part, self.n_heads) for part in self.qkv(x).chunk(3, dim=-1))
+        return self.out(merge_heads(banded_attention(q, k, v, self.slopes, self.period, self.window)))
+
+    def step(self, x: Tensor, cache: WindowCache, bias: Tensor) -> Tensor:
+        """One frame: x [B,d] -> [B,d]; its keys and values join ``cache``; bias [B*H,n,1] for the n cached frames."""
+        qkv = self.qkv(x).view(x.shape[0], 3, self.n_heads, -1)  # [B,3,H,dh]
+        keys, values = cache.append(qkv[:, 1:].transpose(0, 1))
+        return self.out(attend_one(qkv[:, 0], keys, values, bias[:, -keys.shape[2]:]))
+
+
+class CrossAttention(nn.Module):
+    """Attention of frame t to the encoded expressions of frames t-cross_window+1..t (bias -slope * offset).
+
+    With a one-frame window the only key is the aligned frame: attention returns its value, so neither a
+    query nor keys are needed and ``kv`` projects values only.
+    """
+
+    def __init__(self, d_model: int, n_heads: int, window: int):
+        super().__init__()
+        self.n_heads, self.window = n_heads, window
+        self.register_buffer("slopes", alibi_slopes(n_heads), persistent=False)
+        self.norm = nn.LayerNorm(d_model) if window > 1 else None
+        self.q = nn.Linear(d_model, d_model) if window > 1 else None
+        self.kv = nn.Linear(d_model, (2 if window > 1 else 1) * d_model)
+        self.out = nn.Linear(d_model, d_model)
+
+    def forward(self, x: Tensor, memory: Tensor) -> Tensor:
+        """x [B,T,d] tokens, memory [B,T,d] encoded expressions -> [B,T,d]."""
+        if self.window == 1:
+            return self.out(self.kv(memory))
+        q = split_heads(self.q(self.norm(x)), self.n_heads)
+        k, v = (split_heads(part, self.n_heads) for part in self.kv(memory).chunk(2, dim=-1))
+        return self.out(merge_heads(banded_attention(q, k, v, self.slopes, 1, self.window)))
+
+    def encode(self, memory: Tensor) -> list[Tensor]:
+        """What :meth:`step` needs of C encoded frames memory [B,C,d]: per frame the output [B,d] (window 1,
+        which does not depend on the query) or the keys and values [2,B,H,dh] for the cache."""
+        if self.window == 1:
+            return list(self.out(self.kv(memory)).unbind(1))
+        k, v = (split_heads(part, self.n_heads) for part in self.kv(memory).chunk(2, dim=-1))  # [B,H,C,dh]
+        return list(torch.stack([k, v]).unbind(3))
+
+    def step(self, x: Tensor, encoded: Tensor, cache: WindowCache | None, bias: Tensor | None) -> Tensor:
+        """One frame: x [B,d], ``encoded`` its frame of :meth:`encode` -> [B,d]."""
+        if self.window == 1:
+            return encoded
+        q = self.q(self.norm(x)).view(x.shape[0], self.n_heads, -1)
+        keys, values = cache.append(encoded)
+        return self.out(attend_one(q, keys, values, bias[:, -keys.shape[2]:]))
+
+
+class Block(nn.Module):
+    """Pre-norm decoder block: periodic-biased causal self-attention, aligned cross-attention, MLP.
+
+    ``forward`` runs whole sequences (teacher forcing), ``step`` one frame from the caches of a
+    :class:`LarynxStream`; both use the same sub-modules (``step`` is for inference: no dropout).
+    """
+
+    def __init__(self, cfg: LarynxTransformerConfig):
+        super().__init__()
+        d = cfg.d_model
+        self.ln_self, self.ln_mlp = nn.LayerNorm(d), nn.LayerNorm(d)
+        self.attention = SelfAttention(d, cfg.n_heads, cfg.window, cfg.period)
+        self.cross = CrossAttention(d, cfg.n_heads, cfg.cross_window)
+        self.mlp = nn.Sequential(nn.Linear(d, cfg.d_ff), nn.GELU(approximate="tanh"), nn.Linear(cfg.d_ff, d))
+        self.dropout = nn.Dropout(cfg.dropout)
+
+    def forward(self, x: Tensor, memory: Tensor) -> Tensor:
+        """x [B,T,d] tokens, memory [B,T,d] encoded expressions -> [B,T,d]."""
+        x = x + self.dropout(self.attention(self.ln_self(x)))
+        x = x + self.dropout(self.cross(x, memory))
+        return x + self.dropout(self.mlp(self.ln_mlp(x)))
+
+    def step(self, x: Tensor, encoded: Tensor, state: BlockState) -> Tensor:
+        """One frame: x [B,d], ``encoded`` the frame's :meth:`CrossAttention.encode` output -> [B,d]."""
+        x = x + self.attention.step(self.ln_self(x), state.self_cache, state.self_bias)
+        x = x + self.cross.step(x, encoded, state.cross_cache, state.cross_bias)
+        return x + self.mlp(self.ln_mlp(x))
+
+
+@dataclass
+class BlockState:
+    """A block's decoding state in a :class:`LarynxStream`: its caches and their attention biases."""
+
+    self_cache: WindowCache
+    self_bias: Tensor
+    cross_cache: WindowCache | None = None
+    cross_bias: Tensor | None = None
+
+
+class CausalConv(nn.Module):
+    """Dilated temporal convolution over past frames only:
+    y[t] = sum_j W_j x[t - (kernel-1-j) * dilation] (zeros before frame 0)."""
+
+    def __init__(self, channels: int, kernel: int, dilation: int):
+        super().__init__()
+        self.history = (kernel - 1) * dilation  # past frames each output needs
+        self.conv = nn.Conv1d(channels, channels, kernel, dilation=dilation)
+
+    def forward(self, x: Tensor, history: Tensor | None = None) -> Tensor:
+        """x [B,T,C], history [B,self.history,C] (the frames before x; zeros if None) -> [B,T,C]."""
+        if history is None:
+            history = x.new_zeros(x.shape[0], self.history, x.shape[2])
+        return self.conv(torch.cat([history, x], dim=1).transpose(1, 2)).transpose(1, 2)
+
+
+class Smoothing(nn.Module):
+    """A bank of causal first-order low-passes (exponential moving averages), one per channel, with learnt
+    time constants: y[t] = a * y[t-1] + (1 - a) * x[t], a = exp(-1 / tau_c) (as Mega's moving-average
+    attention, Ma et al., ICLR 2023).  The larynx's inertia and lag are low-passes of this kind; a window
+    of attention can only approximate them.  Time constants start log-spaced from 1 frame to
+    ``max_frames``; the smoothed channels are mixed back into the input (residual).
+
+    The state before the first frame is the first frame itself (a recording starts at rest, not at zero).
+    """
+
+    def __init__(self, channels: int, max_frames: float, chunk: int = 128):
+        super().__init__()
+        self.chunk = chunk
+        self.log_time = nn.Parameter(torch.linspace(0.0, math.log(max_frames), channels))
+        self.mix = nn.Linear(channels, channels)
+
+    def decay(self) -> Tensor:
+        """a [C] per channel."""
+        return torch.exp(-torch.exp(-self.log_time))
+
+    def forward(self, x: Tensor, state: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """x [B,T,C] and the smoothed value [B,C] of the frame before (None: start at x's first frame) ->
+        (x + mix(smoothed) [B,T,C], the smoothed value of the last frame [B,C])."""
+        a = self.decay()
+        state = x[:, 0] if state is None else state
+        out = []
+        for start in range(0, x.shape[1], self.chunk):  # exact recurrence as a [C,n,n] lower-triangular matrix
+            part = x[:, start:start + self.chunk]
+            k = torch.arange(part.shape[1])
+            lag = (k[:, None] - k[None, :]).clamp(min=0).to(x.dtype)
+            weights = torch.where(k[:, None] >= k[None, :], a[:, None, None] ** lag, 0.0) * (1 - a)[:, None, None]
+            smoothed = torch.einsum("ctj,bjc->btc", weights, part)
+            smoothed = smoothed + a[None, None, :] ** (k + 1).to(x.dtype)[None, :, None] * state[:, None, :]
+            state = smoothed[:, -1]
+            out.append(smoothed)
+        return x + self.mix(torch.cat(out, dim=1)), state
+
+
+@dataclass
+class EncoderState:
+    """What the expression encoder carries between calls: per convolution its last inputs
+    [B,conv.history,d], and the smoothing's last value [B,d] (None before the first frame)."""
+
+    conv: list[Tensor]
+    smooth: Tensor | None = None
+
+
+class ExpressionEncoder(nn.Module):
+    """psi [B,T,55] -> features [B,T,d]: a linear projection, residual dilated causal convolutions, a bank
+    of learnt low-passes (:class:`Smoothing`, with ``smoothing_frames`` > 0), a norm."""
+
+    def __init__(self, cfg: LarynxTransformerConfig):
+        super().__init__()
+        d = cfg.d_model
+        self.project = nn.Linear(NUM_EXPRESSIONS, d)
+        self.temporal = nn.ModuleList(CausalConv(d, cfg.expression_kernel, int(dilation))
+                                      for dilation in cfg.expression_dilations)
+        self.smoothing = Smoothing(d, cfg.smoothing_frames) if cfg.smoothing_frames > 0 else None
+        self.norm = nn.LayerNorm(d)
+        self.dropout = nn.Dropout(cfg.dropout)
+
+    def initial_state(self, batch_size: int, dtype=torch.float32) -> EncoderState:
+        """The state before frame 0 (zeros before the convolutions, no smoothed value yet)."""
+        d = self.project.out_features
+        return EncoderState([torch.zeros(batch_size, conv.history, d, dtype=dtype) for conv in self.temporal])
+
+    def forward(self, psi: Tensor, state: EncoderState | None = None) -> tuple[Tensor, EncoderState]:
+        """Encode psi [B,T,55], the frames after ``state`` (None: from frame 0).
+
+        Returns (features [B,T,d], the state after these frames).
+        """
+        x = self.project(psi)
+        conv_history = []
+        for i, conv in enumerate(self.temporal):
+            past = None if state is None else state.conv[i]
+            joined = x if past is None else torch.cat([past, x], dim=1)
+            conv_history.append(_tail(joined, conv.history))
+            x = x + self.dropout(F.gelu(conv(x, past), approximate="tanh"))
+        smooth = None
+        if self.smoothing is not None:
+            x, smooth = self.smoothing(x, None if state is None else state.smooth)
+        return self.dropout(self.norm(x)), EncoderState(conv_history, smooth)
+
+
+def _tail(x: Tensor, count: int) -> Tensor:
+    """The last ``count`` frames of x [B,T,C], zero-padded in front when T < count."""
+    if x.shape[1] >= count:
+        return x[:, x.shape[1] - count:]
+    return torch.cat([x.new_zeros(x.shape[0], count - x.shape[1], x.shape[2]), x], dim=1)
+
+
+class LarynxTransformer(nn.Module):
+    """tau from psi: autoregressive over tau, cross-attending to the expressions (see module docstring).
+
+    Args:
+        cfg: the network's sizes.
+        data: what it takes from the training data (rate, subjects, tau normalisation).
+    """
+
+    def __init__(self, cfg: LarynxTransformerConfig, data: LarynxDataFields):
+        super().__init__()
+        self.cfg, self.data = cfg, data
+        d = cfg.d_model
+        self.fps = float(data.fps)
+        self.window, self.cross_window, self.period = cfg.window, cfg.cross_window, cfg.period
+        self.subjects = [str(s) for s in data.subjects]
+        self.use_eta, self.feedback = bool(cfg.use_eta), bool(cfg.feedback)
+        self.register_buffer("tau_mean", torch.tensor(float(data.tau_mean)), persistent=False)
+        self.register_buffer("tau_scale", torch.tensor(float(data.tau_scale)), persistent=False)
+        self.register_buffer("positional", periodic_encoding(torch.arange(self.period), d, self.period),
+                             persistent=False)
+        self.expression = ExpressionEncoder(cfg)
+        # The motion encoder: previous tau (with feedback), then eta - 1 (with use_eta).
+        inputs = int(self.feedback) + int(self.use_eta)
+        self.motion = nn.Linear(inputs, d) if inputs else None  # (without: the style rows are the token bias)
+        self.style = nn.Embedding(len(self.subjects) + 1, d)
+        self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layers))
+        self.ln_out = nn.LayerNorm(d)
+        self.head = nn.Linear(d, 1)
+        nn.init.zeros_(self.style.weight)
+        nn.init.normal_(self.head.weight, std=0.01)
+        nn.init.zeros_(self.head.bias)
+
+    @property
+    def config(self) -> dict:
+        """The checkpoint's ``model_config``: the sizes and the data fields (what :func:`build_model` takes)."""
+        return {**dataclasses.asdict(self.cfg), **dataclasses.asdict(self.data)}
+
+    # ------------------------------------------------------------------ helpers
+
+    def subject_index(self, subject: str | None) -> int:
+        """Style index of a subject name (0 for None = unknown subject)."""
+        if subject is None:
+            return 0
+        if str(subject) not in self.subjects:
+            known = ", ".join(self.subjects[:20]) + (" ..." if len(self.subjects) > 20 else "")
+            raise InputError(f"subject '{subject}' was not in the training data (known: {known or 'none'}); "
+                             f"leave subject unset for the average style")
+        return self.subjects.index(str(subject)) + 1
+
+    def shift(self, tau: Tensor) -> Tensor:
+        """previous_tau for teacher forcing: [tau_mean, tau[0], ..., tau[T-2]] per row of tau [B,T]."""
+        return torch.cat([self.tau_mean.expand(tau.shape[0], 1).to(tau.dtype), tau[:, :-1]], dim=1)
+
+    def token_base(self, batch_size: int, subject: Tensor | None, eta: Tensor | None) -> Tensor:
+        """The part of the tokens that depends neither on tau nor on psi: [B,period,d].
+
+        A token is ``motion([previous normalised tau,] [eta - 1]) + positional(t mod period) + style
+        + expression features(t)``; the motion encoder is linear, so everything but
+        ``previous * motion.weight[:, 0]`` (with feedback) and the expression features is a table over
+        the period.
+        """
+        base = (self.positional if self.motion is None else self.motion.bias + self.positional)[None]  # [1,period,d]
+        style = self.style.weight[:1] if subject is None else self.style(subject)  # [1 or B,d]
+        base = base + style[:, None, :]
+        if self.use_eta:
+            if eta is None:
+                raise ValueError("this model takes eta (use_eta); pass eta [B]")
+            base = base + (eta.to(base.dtype) - 1.0)[:, None, None] * self.motion.weight[:, int(self.feedback)]
+        return base.expand(batch_size, -1, -1)
+
+    def _tokens(self, previous_tau: Tensor, memory: Tensor, subject: Tensor | None, eta: Tensor | None) -> Tensor:
+        """Decoder tokens [B,T,d] for previous_tau [B,T] (UV units) and expression features memory [B,T,d]."""
+        base = self.token_base(memory.shape[0], subject, eta)
+        positions = torch.arange(memory.shape[1]) % self.period
+        tokens = base[:, positions] + memory
+        if self.feedback:
+            normalised = (previous_tau - self.tau_mean) / self.tau_scale
+            tokens = tokens + normalised[..., None] * self.motion.weight[:, 0]
+        return tokens
+
+    def to_tau(self, normalised: Tensor) -> Tensor:
+        """Normalised tau [...] (the network's output) -> tau [...] in UV units."""
+        return self.tau_mean + self.tau_scale * normalised
+
+    def _readout(self, x: Tensor) -> Tensor:
+        """Hidden states [...,d] -> tau [...] in UV units."""
+        return self.to_tau(self.head(self.ln_out(x))[..., 0])
+
+    # ------------------------------------------------------------------ teacher forcing
+
+    def forward(self, psi: Tensor, previous_tau: Tensor | None, subject: Tensor | None = None,
+                eta: Tensor | None = None) -> Tensor:
+        """Teacher-forced tau.
+
+        Args:
+            psi: [B,T,55] expression weights at ``fps``.
+            previous_tau: [B,T] the tau fed to each frame, UV units (see :meth:`shift`); unused (may be
+                None) without ``feedback``.
+            subject: [B] long style indices (None: the unknown subject's style for all).
+            eta: [B] larynx sizes (only with ``use_eta``).
+
+        Returns:
+            tau [B,T] in UV units; frame t depends on psi[:, :t+1] and previous_tau[:, :t+1] only.
+        """
+        memory, _ = self.expression(psi)
+        x = self._tokens(previous_tau, memory, subject, eta)
+        for block in self.blocks:
+            x = block(x, memory)
+        return self._readout(x)
+
+    # ------------------------------------------------------------------ decoding
+
+    def stream(self, batch_size: int = 1, subject: Tensor | None = None, eta: Tensor | None = None) -> LarynxStream:
+        """A frame-by-frame decoder (see :class:`LarynxStream`)."""
+        return LarynxStream(self, batch_size, subject, eta)
+
+    @torch.inference_mode()
+    def generate(self, psi: Tensor, subject: Tensor | None = None, eta: Tensor | None = None,
+                 chunk: int = 1024) -> Tensor:
+        """Autoregressive tau [B,T] (UV units) from psi [B,T,55], streamed with the cache (any length).
+
+        The expression side (encoder, cross-attention inputs) is computed ``chunk`` frames at a time,
+        the autoregressive side frame by frame; memory is O(chunk + window) beyond input and output.
+        """
+        stream = self.stream(psi.shape[0], subject, eta)
+        out = torch.empty(psi.shape[:2], dtype=psi.dtype)
+        for start in range(0, psi.shape[1], chunk):
+            frames = stream.encode(psi[:, start:start + chunk])
+            with single_thread():
+                for t, frame in enumerate(frames):
+                    out[:, start + t] = stream.advance(frame)
+        return self.to_tau(out)
+
+    @torch.no_grad()
+    def generate_uncached(self, psi: Tensor, subject: Tensor | None = None, eta: Tensor | None = None) -> Tensor:
+        """Reference decoding as FaceFormer does it: rerun ``forward`` on the whole prefix at every frame (O(T^2)).
+
+        (Without ``feedback`` one ``forward`` pass gives the same; the prefix loop keeps this the reference
+        of what the stream computes frame by frame.)"""
+        previous = self.tau_mean.expand(psi.shape[0], 1).to(psi.dtype)
+        out = []
+        for t in range(psi.shape[1]):
+            tau = self.forward(psi[:, : t + 1], previous, subject, eta)[:, -1]
+            out.append(tau)
+            previous = torch.cat([previous, tau[:, None]], dim=1)
+        return torch.stack(out, dim=1)
+
+
+@dataclass
+class EncodedFrame:
+    """One frame's expression side, computed ahead by :meth:`LarynxStream.encode`: its features [B,d]
+    and per block the cross-attention input (:meth:`CrossAttention.encode`)."""
+
+    memory: Tensor
+    cross: list[Tensor]
+
+
 class LarynxStream:
     """Live decoding, one frame at a time, at constant cost per frame and bounded memory.
 
     ``step(psi_t [B,55]) -> tau_t [B]`` (UV units).  The stream keeps the expression encoder's
-    convolution history, per block a self-attention :class:`WindowCache` of ``window`` frames (and a
-    cross-attention one of ``cross_window`` frames), and the last prediction, fed back as the next
-    frame's motion token.  Nothing in it grows with the position.
+    state (:class:`EncoderState`: convolution history, smoothed values), per block a :class:`BlockState`
+    (a self-attention :class:`WindowCache` of ``window`` frames, and a cross-attention one of
+    ``cross_window`` frames), and the last prediction
+    (fed back into the next token with ``feedback``).  Nothing in it grows with the position
+    (:func:`tensor_bytes` measures it).
     """
 
     def __init__(self, model: LarynxTransformer, batch_size: int = 1, subject: Tensor | None = None,
                  eta: Tensor | None = None):
         self.model = model
         self.batch_size = batch_size
-        cfg = model.config
+        cfg = model.cfg
         dtype = next(model.parameters()).dtype
-        heads, head_dim = cfg["n_heads"], cfg["d_model"] // cfg["n_heads"]
+        heads, head_dim = cfg.n_heads, cfg.d_model // cfg.n_heads
         with torch.no_grad():  # a snapshot of the weights: make a new stream after training further
             self.token_base = model.token_base(batch_size, subject, eta).to(dtype)  # [B,period,d]
-        self.self_caches = [WindowCache(batch_size, heads, head_dim, model.window, dtype) for _ in model.blocks]
-        self.cross_caches = [WindowCache(batch_size, heads, head_dim, model.cross_window, dtype)
-                             for _ in model.blocks] if model.cross_window > 1 else []
-        self.conv_history = [torch.zeros(batch_size, cfg["expression_kernel"] - 1, cfg["d_model"], dtype=dtype)
-                             for _ in model.expression.temporal]
+        slopes = alibi_slopes(heads)
+        self.blocks = []
+        for _ in model.blocks:
+            state = BlockState(WindowCache(batch_size, heads, head_dim, model.window, dtype),
+                               step_bias(slopes, model.period, model.window, batch_size).to(dtype))
+            if model.cross_window > 1:
+                state.cross_cache = WindowCache(batch_size, heads, head_dim, model.cross_window, dtype)
+                state.cross_bias = step_bias(slopes, 1, model.cross_window, batch_size).to(dtype)
+            self.blocks.append(state)
+        self.expression_state = model.expression.initial_state(batch_size, dtype)
         self.previous = torch.zeros(batch_size, 1, dtype=dtype)  # normalised tau of the last frame (0 = tau_mean)
         self.position = 0
-        # Attention biases [B*H,window,1] (see attend_one) for offsets window-1, ..., 0: the last n keys
-        # (oldest first) take the tail.
-        slopes = model.blocks[0].slopes  # the same in every block
-        offsets = torch.arange(model.window - 1, -1, -1)[None, :]
-        bias = relative_bias(offsets, slopes, model.period, model.window)[:, 0]
-        self.self_bias = bias.repeat(batch_size, 1)[:, :, None].to(dtype)
-        offsets = torch.arange(model.cross_window - 1, -1, -1)[None, :]
-        bias = relative_bias(offsets, slopes, 1, model.cross_window)[:, 0]
-        self.cross_bias = bias.repeat(batch_size, 1)[:, :, None].to(dtype)
-
-    def cache_elements(self) -> int:
-        """Number of values the stream holds (constant: it does not grow with the position)."""
-        tensors = [c.kv for c in self.self_caches + self.cross_caches] + self.conv_history + [self.previous]
-        return sum(t.numel() for t in tensors)
 
     @torch.inference_mode()
-    def encode(self, psi: Tensor) -> list[list[Tensor]]:
-        """The cross-attention inputs of expression frames psi [B,C,55] that continue the stream.
-
-        Returns per block a list of C frames: with ``cross_window`` 1 the attention has a single key
-        (the aligned frame), so its output, [B,d], is computed here for all C frames at once;
-        otherwise the frame's keys and values [2,B,H,dh] for the cross cache.
-        """
+    def encode(self, psi: Tensor) -> list[EncodedFrame]:
+        """The expression side of frames psi [B,C,55] that continue the stream, one :class:`EncodedFrame`
+        per frame (computed for all C frames at once)."""
         model = self.model
-        memory, self.conv_history = model.expression(psi, self.conv_history)
-        out = []
-        for block in model.blocks:
-            if model.cross_window == 1:
-                out.append(list(block.cross_out(block.cross_kv(memory)).unbind(1)))  # values are the output
-            else:
-                k, v = map(block.heads, block.cross_kv(memory).chunk(2, dim=-1))  # [B,H,C,dh]
-                out.append(list(torch.stack([k, v]).unbind(3)))
-        return out
+        memory, self.expression_state = model.expression(psi, self.expression_state)
+        cross = [block.cross.encode(memory) for block in model.blocks]
+        return [EncodedFrame(m, [c[t] for c in cross]) for t, m in enumerate(memory.unbind(1))]
 
     @torch.inference_mode()
-    def advance(self, cross: list[Tensor]) -> Tensor:
-        """Decode the next frame from its cross-attention inputs (one per block, see ``encode``).
+    def advance(self, frame: EncodedFrame) -> Tensor:
+        """Decode the next frame from its encoded expressions (see :meth:`encode`).
 
         Returns the normalised prediction [B] ((tau - tau_mean) / tau_scale).
         """
         model = self.model
-        x = torch.addcmul(self.token_base[:, self.position % model.period], self.previous, model.motion.weight[:, 0])
-        n_self = min(self.position + 1, model.window)
-        n_cross = min(self.position + 1, model.cross_window)
-        for i, block in enumerate(model.blocks):
-            qkv = block.qkv(block.ln_self(x)).view(self.batch_size, 3, block.n_heads, -1)  # [B,3,H,dh]
-            keys, values = self.self_caches[i].append(qkv[:, 1:].transpose(0, 1))
-            x = x + block.self_out(attend_one(qkv[:, 0], keys, values, self.self_bias[:, -n_self:]))
-            if model.cross_window == 1:
-                x = x + cross[i]
-            else:
-                q = block.cross_q(block.ln_cross(x)).view(self.batch_size, block.n_heads, -1)
-                keys, values = self.cross_caches[i].append(cross[i])
-                x = x + block.cross_out(attend_one(q, keys, values, self.cross_bias[:, -n_cross:]))
-            x = x + block.mlp(block.ln_mlp(x))
+        x = self.token_base[:, self.position % model.period] + frame.memory
+        if model.feedback:
+            x = torch.addcmul(x, self.previous, model.motion.weight[:, 0])
+        for block, cross, state in zip(model.blocks, frame.cross, self.blocks):
+            x = block.step(x, cross, state)
         y = model.head(model.ln_out(x))  # [B,1]
         self.previous = y
         self.position += 1
@@ -440,24 +664,69 @@ class LarynxStream:
         """One live frame: psi_t [B,55] (or [55] for B = 1) -> tau_t [B] (UV units)."""
         psi_t = torch.as_tensor(psi_t, dtype=self.previous.dtype).reshape(self.batch_size, 1, NUM_EXPRESSIONS)
         with single_thread():
-            y = self.advance([frames[0] for frames in self.encode(psi_t)])
+            y = self.advance(self.encode(psi_t)[0])
         return self.model.to_tau(y)
 
 
+def tensor_bytes(root, exclude: tuple = ()) -> int:
+    """Bytes of the storage of every tensor reachable from ``root`` through attributes, lists, tuples, dicts
+    and dataclasses, each storage counted once (views share it); objects in ``exclude`` (e.g. the model,
+    whose weights do not belong to a stream) are not entered."""
+    seen_storages, seen_objects, total = set(), set(), 0
+    skip = {id(x) for x in exclude}
+    pending = [root]
+    while pending:
+        obj = pending.pop()
+        if id(obj) in seen_objects or id(obj) in skip:
+            continue
+        seen_objects.add(id(obj))
+        if isinstance(obj, Tensor):
+            storage = obj.untyped_storage()
+            if storage.data_ptr() not in seen_storages:
+                seen_storages.add(storage.data_ptr())
+                total += storage.nbytes()
+        elif isinstance(obj, dict):
+            pending.extend(obj.values())
+        elif isinstance(obj, (list, tuple, set)):
+            pending.extend(obj)
+        elif hasattr(obj, "__dict__") and not isinstance(obj, type):
+            pending.extend(vars(obj).values())
+    return total
+
+
 def build_model(model_config: dict) -> LarynxTransformer:
-    """The model for a config: exactly the keys of ``SIZES`` (configs/model/larynx_transformer.yaml) and
-    ``DATA_KEYS`` (from the training data); missing or unknown keys are an error."""
+    """The model of a checkpoint's ``model_config``: exactly the fields of :class:`LarynxTransformerConfig`
+    (the sizes) and of :class:`LarynxDataFields` (from the training data); missing or unknown keys, or
+    sizes the config rejects, are a ValueError."""
     missing = [k for k in SIZES + DATA_KEYS if k not in model_config]
     unknown = sorted(set(model_config) - set(SIZES) - set(DATA_KEYS))
     if missing or unknown:
         raise ValueError(f"larynx transformer config: missing {missing}, unknown {unknown}; expected the sizes "
-                         f"{list(SIZES)} (configs/model/larynx_transformer.yaml) and the data's {list(DATA_KEYS)}")
-    return LarynxTransformer(model_config)
+                         f"{list(SIZES)} (LarynxTransformerConfig) and the data's {list(DATA_KEYS)}")
+    sizes = {k: model_config[k] for k in SIZES}
+    sizes["expression_dilations"] = [int(d) for d in sizes["expression_dilations"]]
+    data = {k: model_config[k] for k in DATA_KEYS}
+    return LarynxTransformer(LarynxTransformerConfig(**sizes),
+                             LarynxDataFields(float(data["fps"]), [str(s) for s in data["subjects"]],
+                                              float(data["tau_mean"]), float(data["tau_scale"])))
 
 
 def predict_tau(model: LarynxTransformer, psi: np.ndarray, subject: str | None = None,
                 eta: float | None = None) -> np.ndarray:
-    """tau [T] (UV units) for one recording psi [T,55] at ``model.fps``; ``subject`` a training subject name."""
+    """The larynx slide of one recording, streamed (as live decoding would produce it).
+
+    Args:
+        model: a trained model.
+        psi: [T,55] expression weights at ``model.fps``, ``EXPRESSION_NAMES`` order.
+        subject: a training subject's name for their style, or None for the average style.
+        eta: the larynx size, for models with ``use_eta`` (default 1).
+
+    Returns:
+        tau [T] float64, UV units of the larynx map, + = up the neck.
+
+    Raises:
+        InputError: psi not [T,55], or ``subject`` not among the training subjects.
+    """
     psi = np.asarray(psi, dtype=np.float32)
     if psi.ndim != 2 or psi.shape[1] != NUM_EXPRESSIONS:
         raise InputError(f"psi of shape {psi.shape}, expected [T,{NUM_EXPRESSIONS}] expression weights")

@@ -1,55 +1,152 @@
 """Task: train the expression -> larynx transformer (``models.larynx_transformer``).
 
-Data (``cfg.data.kind``):
-- ``synthetic``: ``data.synthetic_larynx`` sequences; validation = held-out subjects (disjoint ids);
-- ``pairs``: a folder of pair files (``data.pairs``), split into training and validation by file.
-All sequences are resampled to one rate, ``cfg.data.fps`` (frames per second); tau is in UV units.
+Data (``cfg.data``, hydra group ``data``; every sequence is resampled to ``data.fps``; tau in UV units):
+- ``data=synthetic`` (:class:`SyntheticData`): ``data.synthetic_larynx`` sequences.  Validation is
+  on held-out subjects drawn from a *shifted* generator (``data.heldout_shift``: lags, filters,
+  gains, swallow cue and shape outside the training ranges), so the figures measure generalisation
+  to people unlike the training ones, not only to new draws;
+- ``data=pairs`` (:class:`PairsData`): a folder of pair files (``data.pairs``), split into training
+  and validation **by take** (``data.pairs.take_of``: the files' ``take``, else the file name
+  without a trailing clip number), so clips of one recording never sit on both sides.
 
-Training: random crops of ``task.crop`` frames.  Teacher forcing alone lets the model lean on the
-true previous tau, which it never sees at inference, so it drifts; scheduled sampling replaces the
-fed-back tau by the model's own predictions with a probability rising from 0 to
+Training: random crops of ``task.crop`` frames.  ``task.augment`` can alter them in ways that keep
+psi and tau a pair: a time warp applied to both (a rate per crop times a slow sinusoidal
+modulation), a gain and an offset per expression channel of psi, whole channels dropped.  All are
+off by default: on the real-regime benchmark each made the held-out error larger (a warp changes the
+lags and time constants, which are the person's, not the speech's; a gain on psi with tau kept
+teaches an invariance the larynx does not have: its excursion follows the expression's amplitude).
+With ``model.feedback`` (FaceFormer's autoregression), teacher forcing alone lets the model lean on
+the true previous tau, which it never sees at inference, so it drifts; scheduled sampling replaces
+the fed-back tau by the model's own predictions with a probability rising from 0 to
 ``scheduled_sampling.max_probability`` between the fractions ``start`` and ``end`` of training.
 Predictions for all frames come from ``passes`` parallel no-grad passes (each pass feeds the
-previous pass's predictions back; Duckworth et al., "Parallel Scheduled Sampling", 2019), and
-the fed-back tau carries Gaussian noise of ``input_noise`` (in units of ``tau_scale``).
-The loss is the MSE of normalised tau plus ``velocity_weight`` times the MSE of its frame differences.
+previous pass's predictions back; Duckworth et al., "Parallel Scheduled Sampling", 2019), and the
+fed-back tau carries Gaussian noise of ``input_noise`` (in units of ``tau_scale``).  The loss is the
+MSE of normalised tau plus ``velocity_weight`` times the MSE of its frame differences.
+
+Length of training: with ``trainer.max_steps`` null the task chooses it from the data
+(:meth:`Task.max_steps`: ``task.epochs`` passes over the training frames, within
+``[task.min_steps, task.max_steps]``); validation (``evaluate``) returns ``val_loss``, the streamed
+validation RMSE, for early stopping and best-checkpoint selection.
 
 Evaluation: autoregressive (streamed) tau RMSE on the validation sequences, beside two baselines
 fitted on the training data: ridge regression on a causal window of ``ridge_window`` seconds of
-psi (closed form, lambda chosen on a held-out part of the training subjects) and the training mean.
+psi (closed form, lambda chosen by cross-validation over the training takes or subjects) and the
+training mean.
 """
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from data.cli import REQUIRED, register_config, to_dataclass
 from data.errors import InputError
+from data.pairs import LarynxSequence, load_pairs, split_by_take
+from data.synthetic_larynx import heldout_ranges, make_dataset, split_subjects
+from models.larynx_transformer import LarynxTransformerConfig, build_model  # noqa: F401  (task protocol)
 
-from data.splits import split_by_file
-from data.pairs import LarynxSequence, load_pairs
-from models.larynx_transformer import build_model  # also the task protocol's build_model(model_config)
+# --------------------------------------------------------------------------- configs
+
+
+@dataclass
+class ScheduledSampling:
+    start: float = 0.1            # fraction of max_steps where the probability starts rising from 0
+    end: float = 0.5              # ... and reaches max_probability
+    max_probability: float = 1.0
+    passes: int = 2               # parallel no-grad passes producing the fed-back predictions
+
+
+@dataclass
+class Augment:
+    """Training-crop augmentation that keeps (psi, tau) a valid pair."""
+
+    time_warp: float = 0.0        # crop rate drawn log-uniformly in [1/(1+w), 1+w] (psi and tau together)
+    warp_wobble: float = 0.0      # amplitude of the slow sinusoidal modulation of that rate
+    psi_gain: float = 0.0         # std of the log gain per expression channel of psi (clipped to [0, 1] after)
+    psi_offset: float = 0.0       # std of an offset per expression channel of psi (a neutral pose of its own)
+    channel_dropout: float = 0.0  # probability of zeroing an expression channel for a whole crop
+
+
+@dataclass
+class LarynxTaskConfig:
+    """``task=larynx_transformer``: crops, losses, augmentation, the length of training, the baselines."""
+
+    name: str = "larynx_transformer"
+    crop: int = 128               # frames per training crop (must exceed model.window)
+    batch_size: int = 16
+    style_dropout: float = 0.25   # share of crops trained with the unknown-subject style (used for new subjects)
+    input_noise: float = 0.1      # std of noise on the fed-back tau, in units of tau_scale
+    velocity_weight: float = 0.5  # weight of the frame-difference MSE
+    scheduled_sampling: ScheduledSampling = field(default_factory=ScheduledSampling)
+    augment: Augment = field(default_factory=Augment)
+    # trainer.max_steps null: epochs passes over the training frames, within [min_steps, max_steps].
+    epochs: float = 300.0
+    min_steps: int = 600
+    max_steps: int = 2000
+    eval_batch: int = 32          # validation sequences decoded together
+    ridge_window: float = 1.0     # seconds of psi the ridge baseline sees
+    ridge_lambdas: list[float] = field(default_factory=lambda: [0.01, 0.1, 1.0, 10.0, 100.0, 1000.0, 1e4, 1e5])
+
+
+@dataclass
+class SyntheticData:
+    """``data=synthetic``: talking faces and the larynx they drive (``data.synthetic_larynx``)."""
+
+    kind: str = "synthetic"
+    fps: float = 30.0
+    seconds: float = 20.0                  # length of each sequence
+    train_subjects: int = 24
+    sequences_per_subject: int = 6
+    heldout_subjects: int = 6              # validation: subjects never seen in training ...
+    heldout_sequences_per_subject: int = 3
+    heldout_shift: float = 1.0             # ... from a generator shifted this far (0: the training generator)
+    seed: int = 0                          # data seed (independent of the training seed)
+    tau_noise: float = 0.0005              # std of white tracker noise on tau (UV units; 0.03 ~ 1 cm)
+    swallows_per_minute: float = 8.0       # swallows are placed in pauses of speech at about this rate
+    blinks_per_minute: float = 15.0
+    expression_noise: float = 0.01         # std of white tracker noise on each expression weight
+
+
+@dataclass
+class PairsData:
+    """``data=pairs``: a folder of pair files (``python -m data.pairs``), split by take."""
+
+    kind: str = "pairs"
+    path: str = REQUIRED
+    fps: float = 30.0                      # every file is resampled to this rate
+    val_fraction: float = 0.2              # share of takes held out for validation
+    split_seed: int = 0
+
+
+register_config("larynx_transformer_schema", LarynxTaskConfig, group="task")
+register_config("larynx_transformer_synthetic_schema", SyntheticData, group="data_task")
+register_config("larynx_transformer_pairs_schema", PairsData, group="data_task")
+DATA_KINDS = {"synthetic": SyntheticData, "pairs": PairsData}
 
 
 # --------------------------------------------------------------------------- data
 
 
-def load_sequences(data: DictConfig) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
+def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
     """(training, validation) sequences for ``cfg.data``, at ``data.fps``."""
-    if data.kind == "synthetic":
-        from data.synthetic_larynx import make_dataset, split_subjects
-
+    kind = data.kind if hasattr(data, "kind") else data["kind"]
+    if kind not in DATA_KINDS:
+        raise InputError(f"larynx_transformer: data.kind '{kind}' not supported ({' or '.join(DATA_KINDS)})")
+    data = data if isinstance(data, DATA_KINDS[kind]) else to_dataclass(data, DATA_KINDS[kind], where="data")
+    if kind == "synthetic":
         train_ids, heldout_ids = split_subjects(data.train_subjects, data.heldout_subjects)
         options = {"tau_noise": data.tau_noise, "swallows_per_minute": data.swallows_per_minute,
                    "blinks_per_minute": data.blinks_per_minute, "expression_noise": data.expression_noise}
         train = make_dataset(train_ids, data.sequences_per_subject, data.seconds, data.fps, data.seed, **options)
         val = make_dataset(heldout_ids, data.heldout_sequences_per_subject, data.seconds, data.fps, data.seed,
-                           **options)
+                           ranges=heldout_ranges(data.heldout_shift), **options)
         return train, val
-    if data.kind == "pairs":
-        pairs = load_pairs(data.path, data.fps)
-        return split_by_file(pairs, float(data.val_fraction), int(data.split_seed), f"pair file in {data.path}")
-    raise ValueError(f"larynx_transformer: data.kind '{data.kind}' not supported (synthetic or pairs)")
+    pairs = load_pairs(data.path, data.fps)
+    return split_by_take(pairs, float(data.val_fraction), int(data.split_seed), f"take in {data.path}")
 
 
 def usable_sequences(train: list[LarynxSequence], crop: int) -> list[LarynxSequence]:
@@ -91,32 +188,43 @@ def _solve_ridge(gram: np.ndarray, cross: np.ndarray, lam: float) -> np.ndarray:
     return np.linalg.solve(gram + np.diag(penalty), cross)
 
 
-def fit_ridge(train: list[LarynxSequence], window: int, lambdas: list[float]) -> tuple[np.ndarray, float]:
+def ridge_groups(train: list[LarynxSequence]) -> list[str]:
+    """What the ridge's lambda is cross-validated over, per sequence: its take where takes hold several
+    sequences (clips of a recording, or several people's tau on one recording), else its subject, else the
+    sequence itself."""
+    takes, subjects = [s.take for s in train], [str(s.subject) for s in train]
+    if len(set(takes)) < len(takes) and len(set(takes)) >= 2:
+        return takes
+    if len(set(subjects)) >= 2:
+        return subjects
+    return [s.name for s in train]
+
+
+def fit_ridge(train: list[LarynxSequence], window: int, lambdas: list[float], folds: int = 5
+              ) -> tuple[np.ndarray, float]:
     """Ridge weights [55*window+1] and the chosen lambda.
 
-    lambda minimises the squared error on the last fifth of the training subjects (or sequences)
-    when fitted on the rest; the weights are then refitted on everything.
+    lambda minimises the squared error of cross-validation over up to ``folds`` folds of the groups of
+    :func:`ridge_groups` (takes, subjects or sequences: never frames of one recording on both sides); the
+    weights are then refitted on everything.
     """
-    subjects = sorted({s.subject for s in train}, key=str)
-    if len(subjects) >= 2:
-        held = set(subjects[-max(1, len(subjects) // 5):])
-        fit_part = [s for s in train if s.subject not in held]
-        check_part = [s for s in train if s.subject in held]
-    else:
-        cut = max(1, len(train) - max(1, len(train) // 5))
-        fit_part, check_part = train[:cut], train[cut:]
-    g_fit, c_fit, _, _ = _gram(fit_part, window)
-    if check_part:
-        g_chk, c_chk, yy_chk, _ = _gram(check_part, window)
-        errors = []
-        for lam in lambdas:
-            w = _solve_ridge(g_fit, c_fit, lam)
-            errors.append(w @ g_chk @ w - 2 * w @ c_chk + yy_chk)  # squared error on the check part
-        best = float(lambdas[int(np.argmin(errors))])
-        g_all, c_all = g_fit + g_chk, c_fit + c_chk
-    else:
-        best, g_all, c_all = float(lambdas[len(lambdas) // 2]), g_fit, c_fit
-    return _solve_ridge(g_all, c_all, best), best
+    groups = ridge_groups(train)
+    names = sorted(set(groups))
+    if len(names) < 2:
+        gram, cross, _, _ = _gram(train, window)
+        best = float(lambdas[len(lambdas) // 2])
+        return _solve_ridge(gram, cross, best), best
+    fold_of = {name: i % min(folds, len(names)) for i, name in enumerate(names)}
+    parts = [_gram([s for s, g in zip(train, groups) if fold_of[g] == f], window)
+             for f in range(min(folds, len(names)))]
+    gram_all, cross_all = sum(p[0] for p in parts), sum(p[1] for p in parts)
+    errors = np.zeros(len(lambdas))
+    for gram, cross, yy, _ in parts:
+        for j, lam in enumerate(lambdas):
+            w = _solve_ridge(gram_all - gram, cross_all - cross, lam)
+            errors[j] += w @ gram @ w - 2 * w @ cross + yy  # squared error on the held-out fold
+    best = float(lambdas[int(np.argmin(errors))])
+    return _solve_ridge(gram_all, cross_all, best), best
 
 
 def rmse(predictions: list[np.ndarray], sequences: list[LarynxSequence]) -> float:
@@ -133,11 +241,12 @@ class Task:
 
     def __init__(self, cfg: DictConfig):
         self.cfg = cfg
-        self.settings = cfg.task
+        self.settings: LarynxTaskConfig = to_dataclass(cfg.task, LarynxTaskConfig, where="task")
+        sizes: LarynxTransformerConfig = to_dataclass(cfg.model, LarynxTransformerConfig, where="model")
         self.fps = float(cfg.data.fps)
         crop = int(self.settings.crop)
-        if crop <= cfg.model.window:
-            raise ValueError(f"task.crop ({crop}) must exceed model.window ({cfg.model.window}) so training "
+        if crop <= sizes.window:
+            raise InputError(f"task.crop ({crop}) must exceed model.window ({sizes.window}) so training "
                              f"sees full attention windows")
         train, self.val = load_sequences(cfg.data)
         self.train = usable_sequences(train, crop)  # the model, its normalisation and the baselines see these
@@ -145,36 +254,72 @@ class Task:
         all_tau = np.concatenate([s.tau for s in self.train]).astype(np.float64)
         self.tau_mean = float(all_tau.mean())
         self._model_config = {
-            **OmegaConf.to_container(cfg.model, resolve=True), "fps": self.fps, "subjects": self.subjects,
-            "tau_mean": self.tau_mean, "tau_scale": float(max(all_tau.std(), 1e-6)),
+            **OmegaConf.to_container(OmegaConf.structured(sizes), resolve=True), "fps": self.fps,
+            "subjects": self.subjects, "tau_mean": self.tau_mean, "tau_scale": float(max(all_tau.std(), 1e-6)),
         }
         self.model = build_model(self._model_config)
 
-        # Training crops are gathered from one concatenated array.
+        # Training crops are gathered (and interpolated, see batch) from one concatenated array.
         self.psi = torch.from_numpy(np.concatenate([s.psi for s in self.train]))
         self.tau = torch.from_numpy(np.concatenate([s.tau for s in self.train]))
         lengths = torch.tensor([len(s) for s in self.train])
         self.starts = torch.cat([torch.zeros(1, dtype=torch.long), lengths.cumsum(0)[:-1]])
-        self.crop_counts = lengths - crop + 1  # valid crop positions per sequence
+        self.lengths = lengths
+        self.crop_counts = lengths - crop + 1  # valid crop positions per sequence (unwarped)
         self.seq_subject = torch.tensor([self.model.subject_index(s.subject) for s in self.train])
         self.seq_eta = torch.tensor([1.0 if s.eta is None else s.eta for s in self.train], dtype=torch.float32)
         self._baselines: dict[str, float] | None = None
+        trainer_steps = cfg.trainer.get("max_steps") if "trainer" in cfg else None
+        self.total_steps = int(trainer_steps) if trainer_steps else self.max_steps()
 
     def model_config(self) -> dict:
         return self._model_config
 
+    def max_steps(self) -> int:
+        """Training steps for these data: ``task.epochs`` passes over the training frames, within
+        ``[task.min_steps, task.max_steps]`` (used when ``trainer.max_steps`` is null)."""
+        s = self.settings
+        frames = float(self.lengths.sum())
+        steps = s.epochs * frames / (s.batch_size * s.crop)
+        return int(min(s.max_steps, max(s.min_steps, round(steps))))
+
     # ------------------------------------------------------------------ training
 
-    def batch(self, step: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        """Random crops [B,crop] of training sequences, plus the random draws of the loss."""
-        size, crop = int(self.settings.batch_size), int(self.settings.crop)
+    def _positions(self, size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """Source positions [B,crop] (float, frames into the concatenated training arrays) of ``size`` crops,
+        time-warped (``task.augment``), and each crop's sequence [B]."""
+        crop, augment = int(self.settings.crop), self.settings.augment
         sequence = torch.multinomial(self.crop_counts.double(), size, replacement=True, generator=generator)
-        offset = (torch.rand(size, generator=generator, dtype=torch.float64) * self.crop_counts[sequence]).long()
-        index = (self.starts[sequence] + offset)[:, None] + torch.arange(crop)
+        uniform = torch.rand(size, 1, generator=generator, dtype=torch.float64)
+        log_rate = math.log1p(augment.time_warp) * (2 * uniform - 1)
+        cycles = crop / (torch.rand(size, 1, generator=generator, dtype=torch.float64) * 60 + 40)  # 40-100 frame period
+        phase = 2 * math.pi * torch.rand(size, 1, generator=generator, dtype=torch.float64)
+        frame = torch.arange(crop - 1, dtype=torch.float64)[None]
+        rate = torch.exp(log_rate) * (1 + augment.warp_wobble * torch.sin(2 * math.pi * cycles * frame / crop + phase))
+        offsets = torch.cat([torch.zeros(size, 1, dtype=torch.float64), rate.cumsum(1)], dim=1)  # [B,crop]
+        last = (self.lengths[sequence] - 1).double()
+        offsets = offsets * torch.clamp(last / offsets[:, -1], max=1.0)[:, None]  # slower where a sequence is short
+        start = torch.rand(size, generator=generator, dtype=torch.float64) * (last - offsets[:, -1])
+        return self.starts[sequence].double()[:, None] + start[:, None] + offsets, sequence
+
+    def batch(self, step: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        """Random crops [B,crop] of training sequences, augmented, plus the random draws of the loss."""
+        size, crop = int(self.settings.batch_size), int(self.settings.crop)
+        positions, sequence = self._positions(size, generator)
+        low = positions.floor().long()
+        high = torch.minimum(low + 1, (self.starts[sequence] + self.lengths[sequence] - 1)[:, None])
+        frac = (positions - low.double()).float()
+        psi = torch.lerp(self.psi[low], self.psi[high], frac[..., None])
+        tau = torch.lerp(self.tau[low], self.tau[high], frac)
+        augment = self.settings.augment
+        gain = torch.exp(augment.psi_gain * torch.randn(size, 1, psi.shape[2], generator=generator))
+        offset = augment.psi_offset * torch.randn(size, 1, psi.shape[2], generator=generator)
+        kept = torch.rand(size, 1, psi.shape[2], generator=generator) >= augment.channel_dropout
+        psi = (psi * gain + offset).clamp(0.0, 1.0) * kept
         subject = self.seq_subject[sequence]
         dropped = torch.rand(size, generator=generator) < self.settings.style_dropout
         return {
-            "psi": self.psi[index], "tau": self.tau[index],
+            "psi": psi, "tau": tau,
             "subject": torch.where(dropped, torch.zeros_like(subject), subject),
             "eta": self.seq_eta[sequence],
             "sample": torch.rand(size, crop, generator=generator),  # scheduled sampling draws
@@ -184,7 +329,7 @@ class Task:
     def sampling_probability(self, step: int) -> float:
         """Probability of feeding back the model's own prediction at ``step`` (linear ramp)."""
         ss = self.settings.scheduled_sampling
-        progress = step / max(1, self.cfg.trainer.max_steps)
+        progress = step / max(1, self.total_steps)
         ramp = (progress - ss.start) / max(1e-9, ss.end - ss.start)
         return float(ss.max_probability * np.clip(ramp, 0.0, 1.0))
 
@@ -192,6 +337,11 @@ class Task:
         model = self.model
         psi, tau, subject = batch["psi"], batch["tau"], batch["subject"]
         eta = batch["eta"] if model.use_eta else None
+        if not model.feedback:  # nothing fed back: no teacher forcing, nothing to sample
+            error = (model(psi, None, subject, eta) - tau) / model.tau_scale
+            mse = error.pow(2).mean()
+            loss = mse + self.settings.velocity_weight * (error[:, 1:] - error[:, :-1]).pow(2).mean()
+            return loss, {"loss": loss.item(), "mse": mse.item()}
         teacher = model.shift(tau)
         previous = teacher
         probability = self.sampling_probability(step)
@@ -240,17 +390,22 @@ class Task:
         return self._baselines
 
     def evaluate(self, final: bool = False) -> dict[str, float]:
+        """Validation metrics: ``rmse`` (streamed, UV units), the baselines, their ratio, and ``val_loss``
+        (= ``rmse``; lower is better: what early stopping and best-checkpoint selection compare)."""
         self.model.eval()
         model_rmse = rmse(self.predict(self.val), self.val)
         base = self.baselines()
-        metrics = {"rmse": model_rmse, "ridge_rmse": base["ridge_rmse"], "mean_rmse": base["mean_rmse"],
-                   "rmse_vs_ridge": model_rmse / base["ridge_rmse"]}
+        metrics = {"val_loss": model_rmse, "rmse": model_rmse, "ridge_rmse": base["ridge_rmse"],
+                   "mean_rmse": base["mean_rmse"], "rmse_vs_ridge": model_rmse / base["ridge_rmse"]}
         if final:
             frames = sum(len(s) for s in self.val)
-            print(f"\ntau RMSE on {len(self.val)} validation sequences ({frames} frames at {self.fps:g} fps), UV units:")
+            print(f"\ntau RMSE on {len(self.val)} validation sequences ({frames} frames at {self.fps:g} fps), "
+                  f"UV units:")
             ridge = f"ridge, {base['ridge_window_frames']:.0f}-frame window (lambda {base['ridge_lambda']:g})"
             for label, value in (("transformer (streamed)", model_rmse), (ridge, base["ridge_rmse"]),
                                  ("training mean", base["mean_rmse"])):
                 print(f"  {label:<42}{value:.5f}")
             print(f"  transformer / ridge = {metrics['rmse_vs_ridge']:.3f}")
         return metrics
+
+

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data.expressions import EXPRESSION_NAMES, read_expressions
 from data.errors import InputError
+from data.expressions import EXPRESSION_NAMES, read_expressions
 from data.files import save_npy, save_npz, write_csv
+from data.pairs import LarynxSequence, align_pair, load_pair, load_pairs, save_pair, split_by_take, take_from_name
 from data.splits import split_by_file
 from data.tau_track import read_tau_track
-from data.pairs import LarynxSequence, align_pair, load_pair, load_pairs, save_pair
 
 REPO = Path(__file__).resolve().parents[1]
 JAW = EXPRESSION_NAMES.index("jawOpen")
@@ -101,11 +101,12 @@ def test_cli_asks_for_the_rates_by_their_keys(capture, tmp_path):
     with pytest.raises(InputError, match=r"track\.npy: a \.npy tau track carries no frame rate; give track_fps="):
         run(compose_pairs([f"track={tmp_path / 'track.npy'}", f"expressions={take}", f"out={out}", "fps=30"]))
     np.savetxt(tmp_path / "plain.csv", np.full((50, 55), 0.2), delimiter=",")
-    with pytest.raises(InputError, match=r"plain\.csv: a header-less table carries no frame rate; give expressions_fps="):
+    with pytest.raises(InputError,
+                       match=r"plain\.csv: a header-less table carries no frame rate; give expressions_fps="):
         run(compose_pairs([f"track={track}", f"expressions={tmp_path / 'plain.csv'}", f"out={out}", "fps=30"]))
     assert not out.exists()
-    pair = run(compose_pairs([f"track={tmp_path / 'track.npy'}", "track_fps=25", f"expressions={tmp_path / 'plain.csv'}",
-                              "expressions_fps=10", f"out={out}", "fps=20"]))
+    pair = run(compose_pairs([f"track={tmp_path / 'track.npy'}", "track_fps=25",
+                              f"expressions={tmp_path / 'plain.csv'}", "expressions_fps=10", f"out={out}", "fps=20"]))
     assert pair.fps == 20 and len(pair) == 80  # overlap: the track's 100 frames at 25 fps, 0-3.96 s
     np.testing.assert_allclose(pair.tau, true_tau(np.arange(len(pair)) / 20), atol=2e-4)
 
@@ -139,6 +140,40 @@ def test_save_load_round_trip(tmp_path):
     np.testing.assert_array_equal(loaded.psi, sequence.psi)
     np.testing.assert_array_equal(loaded.tau, sequence.tau)
     assert (loaded.fps, loaded.subject, loaded.eta, loaded.name) == (30.0, "anna", 1.1, "a")
+    assert loaded.take == sequence.name  # a sequence is its own take unless told otherwise, and the file says so
+    sequence.take = "anna_monday"
+    save_pair(tmp_path / "b.npz", sequence)
+    assert load_pair(tmp_path / "b.npz").take == "anna_monday"
+
+
+@pytest.mark.parametrize("stem, take", [("anna_take2_clip07", "anna_take2"), ("anna_take2-08", "anna_take2"),
+                                        ("take3", "take3"), ("ben_03", "ben"), ("ben part 3", "ben"),
+                                        ("007", "007"), ("s1_seg12", "s1")])
+def test_take_from_a_file_name(stem, take):
+    assert take_from_name(stem) == take
+
+
+def test_files_without_take_are_grouped_by_name(tmp_path):
+    for name in ("anna_take1_clip01", "anna_take1_clip02", "ben_take1_clip01"):
+        arrays = {"psi": np.full((10, 55), 0.2, np.float32), "tau": np.zeros(10, np.float32), "fps": np.float64(30)}
+        save_npz(tmp_path / f"{name}.npz", **arrays)  # written by another tool: no take entry
+    assert [p.take for p in load_pairs(tmp_path)] == ["anna_take1", "anna_take1", "ben_take1"]
+
+
+def test_split_by_take_keeps_clips_of_a_take_together(capsys):
+    takes = [f"take{k}" for k in range(5)]
+    pairs = [LarynxSequence(np.zeros((5, 55), np.float32), np.zeros(5, np.float32), 30.0, None, f"{t}_clip{c}", take=t)
+             for t in takes for c in range(4)]
+    for seed in range(6):
+        train, val = split_by_take(pairs, 0.2, seed)
+        assert len({p.take for p in val}) == 1 and len(val) == 4  # one take of five, with all its clips
+        assert not {p.take for p in train} & {p.take for p in val}
+        assert len(train) + len(val) == len(pairs)
+    assert len({split_by_take(pairs, 0.2, seed)[1][0].take for seed in range(10)}) > 1  # the seed chooses
+    one_take = [LarynxSequence(p.psi, p.tau, 30.0, None, p.name, take="only") for p in pairs[:5]]
+    train, val = split_by_take(one_take, 0.2, 0)
+    assert (len(train), len(val)) == (4, 1)  # a single take: split by file, and said
+    assert "all 5 pair files are one take ('only'): validation by file" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("change, match", [

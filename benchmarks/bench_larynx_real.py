@@ -1,0 +1,470 @@
+"""Expression -> larynx in the regime of real capture: real expressions, minutes of pairs, held-out takes.
+
+    python benchmarks/bench_larynx_real.py [--families all] [--seeds 3] [--out /tmp/bench_larynx_real]
+
+psi is real: the two Live Link Face takes in ``../shared/samples/livelinkface`` (``apfel.csv``,
+``facial.csv``, 30 fps) and the HACK release's ``data/bsw_list.npy`` (no rate stored; taken as 30 fps),
+read where they are (the script stops with a message when they are absent).  tau is not measured on
+these takes, so it comes from generator families written for this benchmark, each unlike the
+project's training generator (``data.synthetic_larynx``) in lags and filters, nonlinearity, the cue
+that fires a swallow and the swallow's shape, and with per-subject gains over a wide range
+(:data:`FAMILIES`).  Every family is a causal function of psi plus white tracker noise.
+
+Protocol per family and seed ``s``: recording ``s mod 3`` is the held-out take; the other two are
+cut into contiguous pieces of about 20 s (the *takes* of the pairs folder) and each piece is paired
+with the tau of :data:`SUBJECTS` subjects, one pair file per piece and subject (``take`` = the piece,
+so the validation split by take never shares frames with training).  That is 6-8k training frames.
+The transformer trains with the default ``data=pairs`` config (``python train.py task=larynx_transformer
+data=pairs data.path=...``, run here in-process through :func:`train_default`), and is scored streamed
+on the held-out recording with each subject's style, as ``infer.py subject=...`` does.  Beside it, on
+the same held-out frames: the training mean, ridge regression on a 1 s window of psi (the task's
+baseline, lambda chosen on held-out training takes), and a GRU of about the transformer's parameter
+count with the subject as an input, trained on the same batches (same crops and augmentation) with
+the same validation-based early stopping.
+
+Prints per family the held-out tau RMSE (UV units) of each method, mean and standard deviation over
+seeds, and the transformer's ratio to ridge and to the GRU.  The CPU may be shared: each run is
+sized to a few minutes on one thread; everything is logged as it goes.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import tasks  # noqa: E402,F401  (registers the config schemas)
+import train  # noqa: E402
+from data.cli import compose_config  # noqa: E402
+from data.expressions import EXPRESSION_NAMES, read_expressions  # noqa: E402
+from data.pairs import LarynxSequence, save_pair  # noqa: E402
+from data.synthetic_tau import SwallowShape, swallow_profile  # noqa: E402
+from models.checkpoint import load_model  # noqa: E402
+from models.larynx_transformer import predict_tau  # noqa: E402
+from tasks.larynx_transformer import Task, fit_ridge, rmse, window_features  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+RECORDINGS = {
+    "apfel": SHARED / "samples" / "livelinkface" / "apfel.csv",
+    "facial": SHARED / "samples" / "livelinkface" / "facial.csv",
+    "bsw_list": SHARED / "assets" / "HACK-Model" / "data" / "bsw_list.npy",
+}
+FPS = 30.0  # bsw_list.npy stores no rate; the Live Link Face takes are 30 fps
+SUBJECTS = 3  # tau processes (people) per recording: 8-11k training frames, as the 8,600 of issue 14
+PIECE_SECONDS = 20.0
+K = {name: k for k, name in enumerate(EXPRESSION_NAMES)}
+
+
+def load_recordings() -> dict[str, np.ndarray]:
+    """name -> psi [T,55] at 30 fps; SystemExit naming what is missing."""
+    missing = [str(p) for p in RECORDINGS.values() if not p.is_file()]
+    if missing:
+        raise SystemExit("bench_larynx_real needs the real expression recordings, not found: " + ", ".join(missing))
+    out = {}
+    for name, path in RECORDINGS.items():
+        track = read_expressions(path, fps=FPS)
+        if abs(track.fps - FPS) > 1e-6:
+            raise SystemExit(f"{path}: {track.fps} fps, expected {FPS}")
+        out[name] = track.psi.astype(np.float32)
+    return out
+
+
+# --------------------------------------------------------------------------- causal building blocks
+
+
+def lagged(x: np.ndarray, frames: int) -> np.ndarray:
+    """x delayed by ``frames`` (its first frame repeated in front), along axis 0."""
+    if frames <= 0:
+        return x
+    return np.concatenate([np.repeat(x[:1], frames, axis=0), x])[: len(x)]
+
+
+def low_pass(x: np.ndarray, time_constant: float, order: int = 1) -> np.ndarray:
+    """``order`` cascaded first-order causal low-passes (order 2: critically damped), starting at x[0]."""
+    a = math.exp(-1.0 / (FPS * time_constant))
+    y = np.asarray(x, np.float64)
+    for _ in range(order):
+        out = np.empty_like(y)
+        state = y[0]
+        for t in range(len(y)):
+            state = a * state + (1 - a) * y[t]
+            out[t] = state
+        y = out
+    return y
+
+
+def asymmetric(x: np.ndarray, rise: float, fall: float) -> np.ndarray:
+    """Causal follower with one time constant going up and another coming down (a ratchet)."""
+    up, down = math.exp(-1.0 / (FPS * rise)), math.exp(-1.0 / (FPS * fall))
+    out = np.empty(len(x))
+    state = x[0]
+    for t, value in enumerate(x):
+        a = up if value > state else down
+        state = a * state + (1 - a) * value
+        out[t] = state
+    return out
+
+
+def fire(cue: np.ndarray, refractory: float) -> list[int]:
+    """Frames where the boolean ``cue`` switches on, at least ``refractory`` seconds apart (causal)."""
+    onsets = np.flatnonzero(cue[1:] & ~cue[:-1]) + 1
+    kept: list[int] = []
+    for frame in onsets:
+        if not kept or frame - kept[-1] >= refractory * FPS:
+            kept.append(int(frame))
+    return kept
+
+
+def held_for(condition: np.ndarray, seconds: float) -> np.ndarray:
+    """True where ``condition`` has held for the last ``seconds`` (causal)."""
+    frames = max(1, int(round(seconds * FPS)))
+    run = np.zeros(len(condition), int)
+    count = 0
+    for t, c in enumerate(condition):
+        count = count + 1 if c else 0
+        run[t] = count
+    return run >= frames
+
+
+def swallows(num_frames: int, onsets: list[int], amplitudes: np.ndarray, duration: float,
+             shape: SwallowShape) -> np.ndarray:
+    seconds = np.arange(num_frames) / FPS
+    out = np.zeros(num_frames)
+    for frame, amplitude in zip(onsets, amplitudes):
+        out += swallow_profile(seconds, frame / FPS, duration, float(amplitude), shape)
+    return out
+
+
+def mean_lr(psi: np.ndarray, name: str) -> np.ndarray:
+    return 0.5 * (psi[:, K[name + "_L"]] + psi[:, K[name + "_R"]]).astype(np.float64)
+
+
+# --------------------------------------------------------------------------- the families
+
+
+@dataclass(frozen=True)
+class Person:
+    """A subject of a family: gains (log-uniform over a wide range), a lag and time constants."""
+
+    gain: float      # overall articulation gain
+    swallow: float   # swallow amplitude factor
+    lag: float       # seconds
+    tau_a: float     # seconds, the family's main time constant
+    mix: np.ndarray  # per-term weights
+
+
+def person(family: str, subject: int, seed: int, terms: int) -> Person:
+    rng = np.random.default_rng([seed, sum(map(ord, family)), subject, 77])
+    return Person(gain=float(np.exp(rng.uniform(np.log(0.4), np.log(2.5)))),
+                  swallow=float(np.exp(rng.uniform(np.log(0.6), np.log(1.6)))),
+                  lag=float(rng.uniform(0.12, 0.35)), tau_a=float(rng.uniform(0.08, 0.25)),
+                  mix=rng.uniform(0.5, 1.5, terms))
+
+
+def family_damped(psi: np.ndarray, p: Person) -> np.ndarray:
+    """Linear articulation through a critically damped filter, lagged 120-350 ms; swallows at speech pauses.
+
+    Swallow: the jaw stays closed (jawOpen < 0.1) for 0.5 s, at most one per 4 s; a single bump
+    (no dip, no undershoot) of 0.9 s.
+    """
+    jaw, funnel, smile = psi[:, K["jawOpen"]], psi[:, K["mouthFunnel"]], mean_lr(psi, "mouthSmile")
+    stretch, lower = mean_lr(psi, "mouthStretch"), mean_lr(psi, "mouthLowerDown")
+    drive = (-0.040 * p.mix[0] * jaw - 0.030 * p.mix[1] * funnel + 0.025 * p.mix[2] * smile
+             + 0.020 * p.mix[3] * stretch - 0.015 * p.mix[4] * lower)
+    articulation = p.gain * low_pass(lagged(drive, int(round(p.lag * FPS))), p.tau_a, order=2)
+    onsets = fire(held_for(jaw < 0.1, 0.5), 4.0)
+    shape = SwallowShape(phases=[0.0, 0.45, 1.0], levels=[0.0, 1.0, 0.0])
+    events = swallows(len(psi), onsets, np.full(len(onsets), 0.035 * p.swallow), 0.9, shape)
+    return articulation + events
+
+
+def family_saturating(psi: np.ndarray, p: Person) -> np.ndarray:
+    """A saturating (tanh) mix of mouth and brow weights followed by a ratchet (fast rise, slow fall);
+    swallows when the jaw snaps shut (from > 0.25 to < 0.1 within 0.3 s), biphasic with a deep undershoot."""
+    jaw = psi[:, K["jawOpen"]].astype(np.float64)
+    mix = (1.2 * p.mix[0] * jaw + 0.8 * p.mix[1] * mean_lr(psi, "mouthStretch")
+           - 0.9 * p.mix[2] * psi[:, K["mouthPucker"]] + 0.6 * p.mix[3] * mean_lr(psi, "browInnerUp")
+           - 0.5 * p.mix[4] * mean_lr(psi, "browDown"))
+    level = 0.018 * p.gain * np.tanh(2.5 * (mix - 0.25))
+    articulation = asymmetric(lagged(level, int(round(0.6 * p.lag * FPS))), 0.05, 0.2 + 2 * p.tau_a)
+    window = int(0.3 * FPS)
+    was_open = np.array([jaw[max(0, t - window):t + 1].max() for t in range(len(jaw))]) > 0.25
+    onsets = fire(was_open & (jaw < 0.1), 3.0)
+    amplitudes = 0.03 * p.swallow * (0.6 + np.array([jaw[max(0, f - window):f + 1].max() for f in onsets]))
+    shape = SwallowShape(phases=[0.0, 0.3, 0.6, 1.0], levels=[0.0, 1.0, -0.5, 0.0])
+    return articulation + swallows(len(psi), onsets, amplitudes, 1.3, shape)
+
+
+def family_effort(psi: np.ndarray, p: Person) -> np.ndarray:
+    """Slow effort (a leaky integral over 2-3 s of the mouth's speed, saturating) plus a jaw x smile
+    interaction; swallows when a blink falls on a closed jaw (at most one per 5 s), with a plateau."""
+    jaw, smile = psi[:, K["jawOpen"]].astype(np.float64), mean_lr(psi, "mouthSmile")
+    mouth = [k for k, n in enumerate(EXPRESSION_NAMES) if n.startswith(("mouth", "jaw"))]
+    speed = np.abs(np.diff(psi[:, mouth], axis=0, prepend=psi[:1, mouth])).sum(axis=1) * FPS
+    effort = 0.012 * p.gain * np.tanh(low_pass(speed, 2.0 + 4 * p.tau_a) / 3.0)
+    interaction = -0.03 * p.gain * p.mix[0] * low_pass(lagged(jaw * (0.3 + smile), int(round(p.lag * FPS))), 0.1)
+    cue = (mean_lr(psi, "eyeBlink") > 0.5) & (jaw < 0.12)
+    onsets = fire(cue, 5.0)
+    shape = SwallowShape(phases=[0.0, 0.2, 0.65, 1.0], levels=[0.0, 1.0, 0.9, 0.0])
+    return effort + interaction + swallows(len(psi), onsets, np.full(len(onsets), 0.03 * p.swallow), 1.0, shape)
+
+
+def family_subject(psi: np.ndarray, p: Person) -> np.ndarray:
+    """Per-subject everything: lag 120-350 ms, a subject-specific sign of the lip-rounding term, a squared
+    jaw term, and swallows at pauses (jaw < 0.12 held 0.3 s, at most one per 3 s) whose duration scales
+    with the subject's time constant, biphasic with the undershoot first."""
+    jaw = psi[:, K["jawOpen"]].astype(np.float64)
+    sign = 1.0 if p.mix[0] > 1.0 else -1.0
+    drive = (-0.06 * p.mix[1] * jaw ** 2 + sign * 0.04 * p.mix[2] * psi[:, K["mouthPucker"]]
+             + 0.03 * p.mix[3] * mean_lr(psi, "mouthSmile") - 0.03 * p.mix[4] * psi[:, K["mouthClose"]])
+    articulation = p.gain * low_pass(lagged(drive, int(round(p.lag * FPS))), p.tau_a)
+    onsets = fire(held_for(jaw < 0.12, 0.3), 3.0)
+    shape = SwallowShape(phases=[0.0, 0.25, 0.6, 1.0], levels=[0.0, -0.4, 1.0, 0.0])
+    events = swallows(len(psi), onsets, np.full(len(onsets), 0.04 * p.swallow), 0.7 + 2 * p.tau_a, shape)
+    return articulation + events
+
+
+FAMILIES = {"damped": family_damped, "saturating": family_saturating, "effort": family_effort,
+            "subject": family_subject}
+TRACKER_NOISE = 0.0007  # tau units, white
+
+
+def family_tau(family: str, psi: np.ndarray, subject: int, seed: int, noise_seed: int) -> np.ndarray:
+    """tau [T] of ``subject`` in ``family`` for psi [T,55] (30 fps), with white tracker noise."""
+    p = person(family, subject, seed, terms=5)
+    tau = FAMILIES[family](psi.astype(np.float64), p)
+    rng = np.random.default_rng([seed, subject, noise_seed, 5])
+    return (tau + TRACKER_NOISE * rng.standard_normal(len(tau))).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- the pairs of one run
+
+
+def make_pairs(recordings: dict[str, np.ndarray], family: str, seed: int, folder: Path
+               ) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
+    """Write the training pair files of (family, seed) into ``folder``; returns (those pairs, the held-out
+    sequences: the held-out recording with each subject's tau)."""
+    names = list(recordings)
+    held_out = names[seed % len(names)]
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    train_pairs, heldout = [], []
+    for name, psi in recordings.items():
+        taus = [family_tau(family, psi, subject, seed, noise_seed=sum(map(ord, name))) for subject in range(SUBJECTS)]
+        if name == held_out:
+            heldout += [LarynxSequence(psi, tau, FPS, f"s{subject}", f"{name}_s{subject}", take=name)
+                        for subject, tau in enumerate(taus)]
+            continue
+        pieces = max(1, int(round(len(psi) / FPS / PIECE_SECONDS)))
+        bounds = np.linspace(0, len(psi), pieces + 1).astype(int)
+        for piece in range(pieces):
+            cut = slice(bounds[piece], bounds[piece + 1])
+            for subject, tau in enumerate(taus):
+                pair = LarynxSequence(psi[cut], tau[cut], FPS, f"s{subject}", f"{name}_{piece}_s{subject}",
+                                      take=f"{name}_{piece}")
+                save_pair(folder / f"{pair.name}.npz", pair)
+                train_pairs.append(pair)
+    return train_pairs, heldout
+
+
+# --------------------------------------------------------------------------- the transformer, as a user runs it
+
+# Trainer settings of the default larynx_transformer run (configs/trainer/larynx_transformer.yaml), passed
+# explicitly so that this benchmark measures them whatever the file holds.
+TRAINER = ["trainer.eval_every=100", "trainer.early_stopping_patience=6", "trainer.restore_best=true",
+           "trainer.checkpoint_every=100000", "trainer.progress=false", "trainer.log_every=100"]
+
+
+def train_default(folder: Path, run_dir: Path, seed: int, extra: list[str] = ()) -> tuple[Path, dict, Task]:
+    """``python train.py task=larynx_transformer data=pairs data.path=<folder> seed=<seed>``, in-process;
+    trainer.max_steps is the task's choice for these data (Task.max_steps).  Returns (the checkpoint of the
+    weights the final evaluation used, eval.json, the task)."""
+    overrides = ["task=larynx_transformer", "data=pairs", f"data.path={folder}", f"seed={seed}", *TRAINER, *extra]
+    task = Task(compose_config("train", overrides + ["trainer.max_steps=1"]))
+    task.total_steps = steps = task.max_steps()
+    cfg = compose_config("train", overrides + [f"trainer.max_steps={steps}"])
+    shutil.rmtree(run_dir, ignore_errors=True)
+    evaluation = train.fit(cfg, run_dir)
+    best = run_dir / "checkpoints" / "best.pt"
+    return (best if best.is_file() else run_dir / "checkpoints" / "last.pt"), evaluation, task
+
+
+# --------------------------------------------------------------------------- the GRU baseline
+
+
+class GRUBaseline(nn.Module):
+    """psi [B,T,55] and a subject style -> tau [B,T]: a linear input layer, one GRU layer, a linear readout."""
+
+    def __init__(self, hidden: int, subjects: int, tau_mean: float, tau_scale: float, dropout: float):
+        super().__init__()
+        self.tau_mean, self.tau_scale = tau_mean, tau_scale
+        self.style = nn.Embedding(subjects + 1, 16)
+        self.project = nn.Linear(55 + 16, hidden)
+        self.gru = nn.GRU(hidden, hidden, batch_first=True)
+        self.dropout = nn.Dropout(dropout)
+        self.head = nn.Linear(hidden, 1)
+
+    def forward(self, psi: torch.Tensor, subject: torch.Tensor) -> torch.Tensor:
+        style = self.style(subject)[:, None].expand(-1, psi.shape[1], -1)
+        x = self.dropout(torch.tanh(self.project(torch.cat([psi, style], dim=2))))
+        y, _ = self.gru(x)
+        return self.tau_mean + self.tau_scale * self.head(self.dropout(y))[..., 0]
+
+
+def parameter_count(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+def gru_hidden_for(count: int) -> int:
+    """The GRU width whose parameter count is closest to ``count``."""
+    sizes = range(16, 513, 8)
+    return min(sizes, key=lambda h: abs(parameter_count(GRUBaseline(h, 1, 0.0, 1.0, 0.0)) - count))
+
+
+def train_gru(task: Task, cfg, hidden: int, seed: int, log) -> GRUBaseline:
+    """The GRU trained on the task's own batches (crops, augmentation), with the transformer's optimiser,
+    schedule, gradient clipping, validation, early stopping and best-weights selection."""
+    torch.manual_seed(seed)
+    model = GRUBaseline(hidden, len(task.subjects), task.tau_mean, float(task.model.tau_scale),
+                        float(cfg.model.dropout))
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.optim.lr, betas=tuple(cfg.optim.betas),
+                                  weight_decay=cfg.optim.weight_decay)
+    steps = task.total_steps
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda s: train.lr_factor(s, cfg.optim.warmup_steps, steps, cfg.optim.min_lr_factor))
+    index = {name: i + 1 for i, name in enumerate(task.subjects)}
+    best, best_state, since = math.inf, None, 0
+    for step in range(steps):
+        _, batch_seed = train.step_seeds(seed, step)
+        batch = task.batch(step, torch.Generator().manual_seed(batch_seed))
+        model.train()
+        error = (model(batch["psi"], batch["subject"]) - batch["tau"]) / model.tau_scale
+        loss = error.pow(2).mean() + task.settings.velocity_weight * (error[:, 1:] - error[:, :-1]).pow(2).mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.trainer.grad_clip)
+        optimizer.step()
+        schedule.step()
+        done = step + 1
+        if done % cfg.trainer.eval_every == 0 or done == steps:
+            score = rmse(predict_gru(model, task.val, index), task.val)
+            if score < best:
+                best, best_state, since = score, {k: v.clone() for k, v in model.state_dict().items()}, 0
+            else:
+                since += 1
+            log(f"    gru step {done}: val rmse {score:.5f} (best {best:.5f})")
+            if cfg.trainer.early_stopping_patience and since >= cfg.trainer.early_stopping_patience:
+                break
+    model.load_state_dict(best_state)
+    return model.eval()
+
+
+@torch.no_grad()
+def predict_gru(model: GRUBaseline, sequences: list[LarynxSequence], index: dict[str, int]) -> list[np.ndarray]:
+    model.eval()
+    return [model(torch.from_numpy(s.psi)[None], torch.tensor([index.get(s.subject, 0)]))[0].numpy()
+            for s in sequences]
+
+
+# --------------------------------------------------------------------------- one run, all runs
+
+
+def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str] = (), gru: bool = True
+            ) -> dict[str, float]:
+    """Held-out RMSE of every method for (family, seed)."""
+    folder, run_dir = out / family / f"seed{seed}" / "pairs", out / family / f"seed{seed}" / "run"
+    train_pairs, heldout = make_pairs(recordings, family, seed, folder)
+    started = time.perf_counter()
+    checkpoint, evaluation, task = train_default(folder, run_dir, seed, list(extra))
+    transformer_seconds = time.perf_counter() - started
+    model = load_model(checkpoint, "larynx_transformer")[0]
+    transformer = [predict_tau(model, s.psi, s.subject) for s in heldout]  # as infer.py subject=...
+    average_style = [predict_tau(model, s.psi) for s in heldout]           # infer.py without subject
+    window = int(round(task.settings.ridge_window * FPS))
+    weights, lam = fit_ridge(train_pairs, window, list(task.settings.ridge_lambdas))
+    ridge = [window_features(s.psi, window) @ weights for s in heldout]
+    mean = float(np.concatenate([p.tau for p in train_pairs]).astype(np.float64).mean())
+    started = time.perf_counter()
+    cfg = compose_config("train", ["task=larynx_transformer", "data=pairs", f"data.path={folder}", *TRAINER,
+                                   *extra])
+    hidden = gru_hidden_for(parameter_count(model))
+    gru_model = train_gru(task, cfg, hidden, seed, log) if gru else GRUBaseline(hidden, 0, mean, 1.0, 0.0)
+    gru_seconds = time.perf_counter() - started
+    index = {name: i + 1 for i, name in enumerate(task.subjects)} if gru else {}
+    gru_predictions = predict_gru(gru_model, heldout, index) if gru else [np.full(len(s), np.nan) for s in heldout]
+    result = {
+        "transformer": rmse(transformer, heldout), "transformer_average_style": rmse(average_style, heldout),
+        "ridge": rmse(ridge, heldout), "gru": rmse(gru_predictions, heldout),
+        "mean": rmse([np.full(len(s), mean) for s in heldout], heldout),
+        "train_frames": float(sum(len(s) for s in task.train)), "val_frames": float(sum(len(s) for s in task.val)),
+        "heldout_frames": float(sum(len(s) for s in heldout)), "steps": float(task.total_steps),
+        "best_step": float(evaluation.get("best_step", task.total_steps)), "ridge_lambda": lam,
+        "transformer_parameters": float(parameter_count(model)), "gru_hidden": float(hidden),
+        "gru_parameters": float(parameter_count(gru_model)), "transformer_seconds": transformer_seconds,
+        "gru_seconds": gru_seconds,
+    }
+    log(f"  {family} seed {seed} (held out {list(recordings)[seed % len(recordings)]}): "
+        + ", ".join(f"{k} {v:.5g}" for k, v in result.items()))
+    return result
+
+
+def summarise(results: dict[str, list[dict[str, float]]]) -> str:
+    methods = ("transformer", "transformer_average_style", "gru", "ridge", "mean")
+    lines = [f"{'family':<12}" + "".join(f"{m:>28}" for m in methods) + f"{'tf/ridge':>16}{'tf/gru':>16}"]
+    for family, runs in results.items():
+        cells = []
+        for m in methods:
+            v = np.array([r[m] for r in runs])
+            cells.append(f"{v.mean():.5f} +- {v.std():.5f}".rjust(28))
+        tf = np.array([r["transformer"] for r in runs])
+        to_ridge, to_gru = tf / np.array([r["ridge"] for r in runs]), tf / np.array([r["gru"] for r in runs])
+        lines.append(f"{family:<12}" + "".join(cells) + f"{to_ridge.mean():>9.3f} +-{to_ridge.std():.2f}"
+                     + f"{to_gru.mean():>9.3f} +-{to_gru.std():.2f}")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--families", default="all", help="comma-separated names of FAMILIES, or all")
+    parser.add_argument("--seeds", type=int, default=3, help="seeds 0..n-1 (seed s holds out recording s mod 3)")
+    parser.add_argument("--out", default="/tmp/bench_larynx_real", help="work folder (pairs, runs, results.json)")
+    parser.add_argument("--override", action="append", default=[], help="extra train.py overrides (experiments)")
+    parser.add_argument("--no-gru", action="store_true", help="skip the GRU baseline (experiments)")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    families = list(FAMILIES) if args.families == "all" else args.families.split(",")
+    recordings = load_recordings()
+    log_file = open(out / "log.txt", "a")
+
+    def log(text: str) -> None:
+        print(text, flush=True)
+        log_file.write(text + "\n")
+        log_file.flush()
+
+    log(f"bench_larynx_real: families {families}, seeds {args.seeds}, overrides {args.override}, "
+        f"load average {os.getloadavg()[0]:.2f}")
+    results: dict[str, list[dict[str, float]]] = {}
+    for family in families:
+        for seed in range(args.seeds):
+            results.setdefault(family, []).append(run_one(recordings, family, seed, out, log, args.override,
+                                                          not args.no_gru))
+            (out / "results.json").write_text(json.dumps(results, indent=1))
+    log("\nheld-out tau RMSE (UV units), mean +- std over seeds:\n" + summarise(results))
+
+
+if __name__ == "__main__":
+    main()
