@@ -6,6 +6,7 @@ tested through their CPU paths (the same loop, gloo) and their refusals and conf
 from __future__ import annotations
 
 import collections
+import gc
 import os
 import subprocess
 import sys
@@ -146,6 +147,10 @@ def test_the_parallel_wrapper_forwards_the_task_models_attributes(tmp_path):
         assert torch.equal(wrapped.shift(x), x + 1) and torch.equal(wrapped(x), model(x))
         with pytest.raises(AttributeError):
             wrapped.no_such_attribute  # noqa: B018
+        # The wrapper's reducer holds the process group: free it first, or tearing down the group from the
+        # reducer's destructor after destroy_process_group can wait forever on gloo's threads.
+        del wrapped
+        gc.collect()
     finally:
         dist.destroy_process_group()
 
