@@ -44,7 +44,6 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import OmegaConf
-from tqdm import tqdm
 
 from data.characters import GIRAFFE_TAG, load_character
 from data.cli import as_list, register_config, run_cli, to_dataclass
@@ -56,6 +55,7 @@ from data.gltf import export_glb
 from data.mesh_io import write_obj, write_ply
 from data.params import AnimationParams, load_params, rig_checksum, save_params
 from data.plots import figure, save_figure
+from data.progress import progress_bar
 from models.checkpoint import load_model
 from models.head2neck import predict_theta
 from models.larynx_transformer import predict_tau
@@ -295,7 +295,7 @@ def write_meshes(folder: Path, rig: HeadNeckModel, params: AnimationParams, mesh
     folder.mkdir(parents=True, exist_ok=True)
     faces = rig.faces.numpy()
     count = len(params)
-    with tqdm(total=count, desc="meshes", unit="frame", disable=count < 64 or not os.isatty(2)) as progress:
+    with progress_bar(total=count, desc="meshes", unit="frame", disable=count < 64) as progress:
         for start in range(0, count, batch):
             stop = min(start + batch, count)
             vertices = rig(torch.as_tensor(params.theta[start:stop]), torch.as_tensor(params.psi[start:stop]),
@@ -433,7 +433,7 @@ def run_folder(cfg: InferConfig, folder: Path, out_dir: Path) -> list[dict]:
     if len({t.name for t in targets}) < len(targets):
         targets = [out_dir / f"{take.stem}{take.suffix.replace('.', '_')}" for take in takes]
     rows = []
-    progress = tqdm(total=len(takes), desc="takes", unit="take", disable=not os.isatty(2))
+    progress = progress_bar(total=len(takes), desc="takes", unit="take")
     if cfg.workers > 1 and len(takes) > 1:
         cfg_dict = OmegaConf.to_container(OmegaConf.structured(cfg))
         with ProcessPoolExecutor(min(cfg.workers, len(takes)), mp_context=get_context("spawn"),

@@ -45,6 +45,7 @@ number of processes, continuing the same computation up to float rounding.
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -61,12 +62,12 @@ import torch.distributed as dist
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from torch.nn.parallel import DistributedDataParallel
-from tqdm import tqdm
 
 import tasks
 from data.cli import compose_config, to_dataclass
 from data.errors import InputError
 from data.files import write_text
+from data.progress import progress_bar
 from models.checkpoint import load_checkpoint, load_state, save_checkpoint
 
 # Config keys a resumed run may change (configs/trainer/*.yaml): they steer the run, not what it computes.
@@ -394,6 +395,13 @@ def _fit(cfg: DictConfig, trainer, run_dir: Path, ranks: Ranks, device: torch.de
         check_resumable(state, cfg, checkpoint_path)
     torch.manual_seed(cfg.seed)
     task = tasks.build(cfg)
+    if trainer.max_steps is None:  # the task's choice for its data
+        if getattr(task, "total_steps", None) is None:
+            raise InputError(f"trainer.max_steps=null: task {cfg.task.name} does not choose its length; "
+                             f"set trainer.max_steps")
+        trainer = dataclasses.replace(trainer, max_steps=int(task.total_steps))
+        if main:
+            print(f"{cfg.task.name}: {trainer.max_steps} training steps for these data (trainer.max_steps=null)")
     model = task.model
     if device.type != "cpu":
         task.to(device)
@@ -437,8 +445,8 @@ def _fit(cfg: DictConfig, trainer, run_dir: Path, ranks: Ranks, device: torch.de
     stop = trainer.max_steps if trainer.stop_after is None else min(trainer.max_steps, trainer.stop_after)
     if validation.stopped:  # resuming a run that stopped early: only the final evaluation is left
         stop = start
-    progress = tqdm(range(start, stop), initial=start, total=stop, desc=cfg.task.name,
-                    disable=not (trainer.progress and main), dynamic_ncols=True)
+    progress = progress_bar(range(start, stop), initial=start, total=stop, desc=cfg.task.name, unit="step",
+                            disable=not (trainer.progress and main))
     running: dict[str, float] = {}
     count = 0
 

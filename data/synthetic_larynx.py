@@ -25,8 +25,8 @@ psi[:t+1] only), nonlinear and subject dependent:
   swallow in progress ignores further crossings.
 Every factor is drawn per subject from the ranges of a :class:`GeneratorRanges`: the training
 subjects from :data:`TRAINING_RANGES`, held-out subjects from :func:`heldout_ranges` (longer lags,
-slower filters, gains and powers outside the training ranges, other signatures and swallow shapes),
-so a validation on them measures generalisation to people unlike the training ones.
+slower filters, gains and powers reaching outside the training ranges, other swallow shapes), so a
+validation on them measures generalisation to people unlike the training ones.
 These are modelling choices that give the learner a known, learnable target with the traits of
 the real problem (lag, saturation, thresholds, memory, per-subject gains), not measured laws.
 Training and held-out subjects are disjoint by id (held-out ids start at ``HELDOUT_SUBJECT_START``).
@@ -105,7 +105,7 @@ class GeneratorRanges:
     lag: Range = (0.03, 0.15)
     inertia: Range = (0.04, 0.12)
     second_order: float = 0.5
-    gain: Range = (0.6, 1.7)
+    gain: Range = (0.7, 1.5)
     jaw_power: Range = (1.6, 2.4)
     saturation: Range = (0.015, 0.03)
     effort_time: Range = (1.0, 2.0)
@@ -118,11 +118,14 @@ class GeneratorRanges:
 
 
 TRAINING_RANGES = GeneratorRanges()
-# Held-out people (heldout_ranges(1.0)): each factor outside or at the edge of its training range.
+# Held-out people (heldout_ranges(1.0)): every range moved towards slower, longer, softer and stranger, by
+# about half its width or more, so that part of each lies outside the training range (a person's lag or
+# time constant cannot be seen in their expressions: beyond the training ranges it is an error no model
+# can avoid, and the shift is kept at what tells models apart).
 HELDOUT_RANGES = GeneratorRanges(
-    lag=(0.15, 0.25), inertia=(0.12, 0.2), second_order=0.5, gain=(0.45, 2.3), jaw_power=(1.2, 1.6),
-    saturation=(0.01, 0.015), effort_time=(2.0, 2.5), effort_gain=(0.009, 0.012), signature=(0.0, 1.0),
-    swallow_duration=(1.15, 1.3), swallow_amplitude=(0.6, 1.4), dip=(-0.05, 0.0), undershoot=(-0.45, -0.3))
+    lag=(0.1, 0.22), inertia=(0.08, 0.18), second_order=0.5, gain=(0.5, 2.0), jaw_power=(1.3, 1.9),
+    saturation=(0.012, 0.022), effort_time=(1.6, 2.5), effort_gain=(0.006, 0.012), signature=(0.0, 1.0),
+    swallow_duration=(1.05, 1.3), swallow_amplitude=(0.6, 1.4), dip=(-0.08, 0.0), undershoot=(-0.4, -0.2))
 
 
 def heldout_ranges(shift: float = 1.0) -> GeneratorRanges:
@@ -187,7 +190,7 @@ def subject_params(subject: int, seed: int, ranges: GeneratorRanges = TRAINING_R
     levels[1], levels[3] = rng.uniform(*r.dip), rng.uniform(*r.undershoot)
     return SubjectParams(
         subject=subject, neutral=neutral, articulation=rng.uniform(0.75, 1.25), syllable_rate=rng.uniform(4.0, 5.5),
-        signature=signature / signature.sum(), rest=rng.normal(0.0, 0.002), lag=rng.uniform(*r.lag),
+        signature=signature / signature.sum(), rest=rng.normal(0.0, 0.001), lag=rng.uniform(*r.lag),
         inertia=rng.uniform(*r.inertia), filter_order=2 if rng.random() < r.second_order else 1,
         jaw_gain=gain * rng.uniform(0.025, 0.032), spread_gain=gain * rng.uniform(0.015, 0.019),
         round_gain=gain * rng.uniform(0.015, 0.019), jaw_power=rng.uniform(*r.jaw_power),

@@ -120,9 +120,10 @@ def invivo_shares(components: torch.Tensor) -> torch.Tensor:
     or extension by the sign, y: axial rotation, z: lateral bending) the share of a motion of size
     ``m = mean_j |u_jc| / T_c`` (T the default head range) is ``s0 + (s1 - s0) min(m, 1) / 2``.
     """
-    start = torch.tensor(START_SHARES, dtype=components.dtype)                     # [4 directions, J]
-    end = 2.0 * torch.tensor(FULL_SHARES, dtype=components.dtype) - start
-    head_range = torch.deg2rad(torch.tensor(HEAD_RANGE_DEG, dtype=components.dtype))
+    like = {"dtype": components.dtype, "device": components.device}
+    start = torch.tensor(START_SHARES, **like)                                   # [4 directions, J]
+    end = 2.0 * torch.tensor(FULL_SHARES, **like) - start
+    head_range = torch.deg2rad(torch.tensor(HEAD_RANGE_DEG, **like))
     size = components.abs().mean(1)                                               # [B,3]
 
     def shares(direction: int, axis: int) -> torch.Tensor:                        # [B,J]
@@ -234,8 +235,8 @@ def chain_to(parents: Sequence[int], joint: int) -> list[int]:
 
 def product_matrices(rest: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Constant linear maps of the chain, [K,4,4] each: ``q -> C q C^*`` and ``q -> q C`` for quaternions C [K,4]."""
-    basis = torch.eye(4, dtype=rest.dtype)[:, None]                                   # [4(i),1,4]
-    conjugate = rest * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=rest.dtype)
+    basis = torch.eye(4, dtype=rest.dtype, device=rest.device)[:, None]               # [4(i),1,4]
+    conjugate = rest * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=rest.dtype, device=rest.device)
     sandwich = quaternion_multiply(quaternion_multiply(rest, basis), conjugate)        # [4(i),K,4]
     right = quaternion_multiply(basis, rest)                                          # [4(i),K,4]
     return sandwich.permute(1, 2, 0), right.permute(1, 2, 0)                          # [K,4(out),4(i)]
@@ -292,14 +293,14 @@ def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iter
     (:func:`euler_rate_axes`) the Jacobian of the head's world rotation vector is ``M_j E_j``.
     """
     dtype = theta.dtype
-    lower, upper = (x.to(dtype) for x in euler_limits(margin))
+    lower, upper = (x.to(theta) for x in euler_limits(margin))
     chain = chain_to(rig.parents, len(rig.parents) - 1)
     rest = matrix_to_quaternion(rig.anatomical_rest_rotations[chain].to(dtype))
     lower, upper = lower[chain], upper[chain]
     target_inverse = matrix_to_quaternion(head_rotations.to(dtype).transpose(-1, -2))
     euler = axis_angle_to_euler(theta)
     chain_euler = torch.clamp(euler[:, chain], lower, upper)
-    eye = damping * torch.eye(3, dtype=dtype)
+    eye = damping * torch.eye(3, dtype=dtype, device=theta.device)
     tolerance = math.radians(tolerance_deg)
     for step in range(iterations + 1):
         head, frames = head_chain(euler_to_quaternion(chain_euler), rest)

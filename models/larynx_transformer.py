@@ -18,9 +18,17 @@ Paired captures come in minutes, not hours, and the defaults (:class:`LarynxTran
 chosen for that regime on real expressions (``benchmarks/bench_larynx_real.py``; figures in
 ``benchmarks/README.md``):
 - the expression encoder is a stack of dilated causal convolutions (a receptive field of
-  ``1 + (kernel-1) * sum(dilations)`` frames, about two seconds) followed by a bank of learnt
-  first-order low-passes (:class:`Smoothing`: the larynx's inertia is one), and its features are added
-  to the decoder's tokens, so the self-attention window sees past expressions, not only past tau;
+  ``1 + (kernel-1) * sum(dilations)`` frames, about two seconds), a residual GRU layer (memory beyond
+  any window: a swallow in progress, the time since the last one, effort building up over seconds;
+  one cell step per live frame) and a bank of learnt first-order low-passes (:class:`Smoothing`: the
+  larynx's inertia is one); its features are added to the decoder's tokens, so the self-attention
+  window sees past expressions, not only past tau;
+- a per-subject output gain (``style_gain``) beside the additive style: people differ by how far
+  their larynx moves for the same face, a product;
+- optionally a linear path beside the network (:class:`LinearPath`, ``linear_window`` frames of psi
+  straight to the output), which the task starts at the ridge fit of its training data, so that the
+  network begins where the linear baseline ends (off by default: no gain measured, even on expressions
+  far from the training ones, where one might expect it to extrapolate as ridge does);
 - ``period`` 1: the attention bias falls per frame (ALiBi slopes 1/4 ... 1/256 per frame: time
   scales of 4 to 256 frames) and the positional encoding is constant; FaceFormer's period of
   speech-animation frames (25 at 25 fps) has no counterpart in the larynx;
@@ -79,6 +87,14 @@ class LarynxTransformerConfig:
     expression_dilations: list[int] = field(default_factory=lambda: [1, 2, 4, 8, 16])
     # Longest initial time constant (frames) of the encoder's bank of learnt low-passes (0: none).
     smoothing_frames: float = 128.0
+    # A gated recurrent layer (GRU, residual) after the convolutions: state of unbounded memory at a flat
+    # per-frame cost (a swallow in progress, a refractory time, an effort that builds up over seconds).
+    recurrent: bool = True
+    # Frames of psi seen by a linear path added to the output (0: none): a causal linear filter, as the ridge
+    # baseline, which the task initialises with the ridge fit of its training data (task.linear_init), so
+    # the network starts where ridge ends.  Off by default: on the real-expression benchmark it changed
+    # nothing beyond the spread of seeds (benchmarks/README.md).
+    linear_window: int = 0
     dropout: float = 0.1       # on the expression features, attention outputs and MLP outputs
     # Feed the previous frame's tau back into the tokens (FaceFormer's autoregression).  At inference the
     # fed-back tau is the model's own prediction, a function of the past psi the tokens already see, so it
@@ -89,6 +105,8 @@ class LarynxTransformerConfig:
     def __post_init__(self) -> None:
         if self.d_model % self.n_heads or (self.d_model // self.n_heads) % 2:
             raise ValueError(f"d_model {self.d_model} must split into {self.n_heads} heads of even size")
+        if self.linear_window < 0:
+            raise ValueError(f"linear_window must be 0 (none) or more frames, got {self.linear_window}")
         for name in ("n_layers", "d_ff", "window", "cross_window", "period", "expression_kernel"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
@@ -128,6 +146,9 @@ def single_thread():
     the other core.
     """
     threads = torch.get_num_threads()
+    if threads == 1:  # nothing to change (setting it is not free: a live step is a fraction of a millisecond)
+        yield
+        return
     torch.set_num_threads(1)
     try:
         yield
@@ -174,7 +195,8 @@ def banded_attention(q: Tensor, k: Tensor, v: Tensor, slopes: Tensor, period: in
     for start in range(0, length, chunk):
         stop = min(length, start + chunk)
         first = max(0, start - window + 1)
-        offsets = torch.arange(start, stop)[:, None] - torch.arange(first, stop)[None, :]
+        offsets = (torch.arange(start, stop, device=q.device)[:, None]
+                   - torch.arange(first, stop, device=q.device)[None, :])
         bias = relative_bias(offsets, slopes, period, window).to(q.dtype)  # [H,chunk,keys]
         scores = torch.matmul(q[:, :, start:stop], k[:, :, first:stop].transpose(-1, -2)) * q.shape[-1] ** -0.5
         out.append(torch.matmul(torch.softmax(scores + bias, dim=-1), v[:, :, first:stop]))
@@ -199,9 +221,9 @@ class WindowCache:
     ``t % window + window``: no copying or rolling, and memory fixed at 2 * window frames.
     """
 
-    def __init__(self, batch: int, heads: int, head_dim: int, window: int, dtype=torch.float32):
+    def __init__(self, batch: int, heads: int, head_dim: int, window: int, dtype=torch.float32, device=None):
         self.window = window
-        self.kv = torch.zeros(2, batch, heads, 2 * window, head_dim, dtype=dtype)  # keys, values
+        self.kv = torch.zeros(2, batch, heads, 2 * window, head_dim, dtype=dtype, device=device)  # keys, values
         self.count = 0
 
     def append(self, kv: Tensor) -> tuple[Tensor, Tensor]:
@@ -230,7 +252,7 @@ def attend_one(q: Tensor, keys: Tensor, values: Tensor, bias: Tensor) -> Tensor:
 def step_bias(slopes: Tensor, period: int, window: int, batch: int) -> Tensor:
     """Biases [B*H,window,1] of one query over keys at offsets window-1, ..., 0 (see :func:`attend_one`);
     the last n rows serve the first frames, when only n keys exist."""
-    offsets = torch.arange(window - 1, -1, -1)[None, :]
+    offsets = torch.arange(window - 1, -1, -1, device=slopes.device)[None, :]
     return relative_bias(offsets, slopes, period, window)[:, 0].repeat(batch, 1)[:, :, None]
 
 
@@ -342,14 +364,21 @@ class CausalConv(nn.Module):
 
     def __init__(self, channels: int, kernel: int, dilation: int):
         super().__init__()
+        self.kernel, self.dilation = kernel, dilation
         self.history = (kernel - 1) * dilation  # past frames each output needs
         self.conv = nn.Conv1d(channels, channels, kernel, dilation=dilation)
 
-    def forward(self, x: Tensor, history: Tensor | None = None) -> Tensor:
-        """x [B,T,C], history [B,self.history,C] (the frames before x; zeros if None) -> [B,T,C]."""
+    def forward(self, x: Tensor, history: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """x [B,T,C], history [B,self.history,C] (the frames before x; zeros if None) -> (y [B,T,C], the history
+        after x)."""
         if history is None:
             history = x.new_zeros(x.shape[0], self.history, x.shape[2])
-        return self.conv(torch.cat([history, x], dim=1).transpose(1, 2)).transpose(1, 2)
+        joined = torch.cat([history, x], dim=1)
+        after = joined[:, joined.shape[1] - self.history:]
+        if x.shape[1] == 1:  # one live frame: its kernel taps times the weights (a convolution call costs more)
+            taps = joined[:, :: self.dilation].transpose(1, 2).flatten(1)  # [B,C*kernel], as the weight's layout
+            return F.linear(taps, self.conv.weight.flatten(1), self.conv.bias)[:, None], after
+        return self.conv(joined.transpose(1, 2)).transpose(1, 2), after
 
 
 class Smoothing(nn.Module):
@@ -377,10 +406,13 @@ class Smoothing(nn.Module):
         (x + mix(smoothed) [B,T,C], the smoothed value of the last frame [B,C])."""
         a = self.decay()
         state = x[:, 0] if state is None else state
+        if x.shape[1] == 1:  # one live frame
+            state = torch.lerp(x[:, 0], state, a)
+            return x + self.mix(state)[:, None], state
         out = []
         for start in range(0, x.shape[1], self.chunk):  # exact recurrence as a [C,n,n] lower-triangular matrix
             part = x[:, start:start + self.chunk]
-            k = torch.arange(part.shape[1])
+            k = torch.arange(part.shape[1], device=x.device)
             lag = (k[:, None] - k[None, :]).clamp(min=0).to(x.dtype)
             weights = torch.where(k[:, None] >= k[None, :], a[:, None, None] ** lag, 0.0) * (1 - a)[:, None, None]
             smoothed = torch.einsum("ctj,bjc->btc", weights, part)
@@ -390,18 +422,51 @@ class Smoothing(nn.Module):
         return x + self.mix(torch.cat(out, dim=1)), state
 
 
+class LinearPath(nn.Module):
+    """y[t] = sum_k w_k . psi[t-k] + b over the last ``window`` frames (the first frame repeated before it, as
+    :func:`tasks.larynx_transformer.window_features`): psi [B,T,55] -> [B,T], in normalised tau units."""
+
+    def __init__(self, window: int):
+        super().__init__()
+        self.window = window
+        self.weight = nn.Parameter(torch.zeros(window, NUM_EXPRESSIONS))  # row k: the frame k frames back
+        self.bias = nn.Parameter(torch.zeros(1))
+
+    def set_weights(self, weights: np.ndarray, tau_mean: float, tau_scale: float) -> None:
+        """Take ridge weights [55*window + 1] (window_features' layout: oldest frame first, then 1; UV units)."""
+        w = torch.as_tensor(np.asarray(weights[:-1]).reshape(self.window, NUM_EXPRESSIONS), dtype=self.weight.dtype)
+        with torch.no_grad():
+            self.weight.copy_(w.flip(0) / tau_scale)
+            self.bias.fill_((float(weights[-1]) - tau_mean) / tau_scale)
+
+    def forward(self, psi: Tensor, history: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """psi [B,T,55] after ``history`` [B,window-1,55] (None: the first frame repeated) -> (y [B,T], the
+        history after psi)."""
+        if history is None:
+            history = psi[:, :1].expand(-1, self.window - 1, -1)
+        joined = torch.cat([history, psi], dim=1)
+        after = joined[:, joined.shape[1] - (self.window - 1):]
+        kernel = self.weight.flip(0).T[None]  # [1,55,window], oldest frame first
+        if psi.shape[1] == 1:  # one live frame
+            return (joined.flatten(1) @ kernel[0].T.flatten() + self.bias)[:, None], after
+        return F.conv1d(joined.transpose(1, 2), kernel)[:, 0] + self.bias, after
+
+
 @dataclass
 class EncoderState:
     """What the expression encoder carries between calls: per convolution its last inputs
-    [B,conv.history,d], and the smoothing's last value [B,d] (None before the first frame)."""
+    [B,conv.history,d], the recurrent layer's hidden state [1,B,d] and the smoothing's last value [B,d]
+    (None before the first frame)."""
 
     conv: list[Tensor]
     smooth: Tensor | None = None
+    recurrent: Tensor | None = None
 
 
 class ExpressionEncoder(nn.Module):
-    """psi [B,T,55] -> features [B,T,d]: a linear projection, residual dilated causal convolutions, a bank
-    of learnt low-passes (:class:`Smoothing`, with ``smoothing_frames`` > 0), a norm."""
+    """psi [B,T,55] -> features [B,T,d]: a linear projection, residual dilated causal convolutions, a residual
+    GRU layer (with ``recurrent``), a bank of learnt low-passes (:class:`Smoothing`, with ``smoothing_frames``
+    > 0), a norm."""
 
     def __init__(self, cfg: LarynxTransformerConfig):
         super().__init__()
@@ -409,14 +474,16 @@ class ExpressionEncoder(nn.Module):
         self.project = nn.Linear(NUM_EXPRESSIONS, d)
         self.temporal = nn.ModuleList(CausalConv(d, cfg.expression_kernel, int(dilation))
                                       for dilation in cfg.expression_dilations)
+        self.recurrent = nn.GRU(d, d, batch_first=True) if cfg.recurrent else None
         self.smoothing = Smoothing(d, cfg.smoothing_frames) if cfg.smoothing_frames > 0 else None
         self.norm = nn.LayerNorm(d)
         self.dropout = nn.Dropout(cfg.dropout)
 
     def initial_state(self, batch_size: int, dtype=torch.float32) -> EncoderState:
-        """The state before frame 0 (zeros before the convolutions, no smoothed value yet)."""
-        d = self.project.out_features
-        return EncoderState([torch.zeros(batch_size, conv.history, d, dtype=dtype) for conv in self.temporal])
+        """The state before frame 0 (zeros before the convolutions, no smoothed value yet), on the weights' device."""
+        d, device = self.project.out_features, self.project.weight.device
+        return EncoderState([torch.zeros(batch_size, conv.history, d, dtype=dtype, device=device)
+                             for conv in self.temporal])
 
     def forward(self, psi: Tensor, state: EncoderState | None = None) -> tuple[Tensor, EncoderState]:
         """Encode psi [B,T,55], the frames after ``state`` (None: from frame 0).
@@ -426,21 +493,25 @@ class ExpressionEncoder(nn.Module):
         x = self.project(psi)
         conv_history = []
         for i, conv in enumerate(self.temporal):
-            past = None if state is None else state.conv[i]
-            joined = x if past is None else torch.cat([past, x], dim=1)
-            conv_history.append(_tail(joined, conv.history))
-            x = x + self.dropout(F.gelu(conv(x, past), approximate="tanh"))
+            y, after = conv(x, None if state is None else state.conv[i])
+            conv_history.append(after)
+            y = F.gelu(y, approximate="tanh")
+            x = x + (self.dropout(y) if self.training else y)
+        hidden = None
+        if self.recurrent is not None:
+            previous = None if state is None else state.recurrent
+            if x.shape[1] == 1 and previous is not None:  # one live frame: the cell alone (less call overhead)
+                r = self.recurrent
+                hidden = torch.gru_cell(x[:, 0], previous[0], r.weight_ih_l0, r.weight_hh_l0, r.bias_ih_l0,
+                                        r.bias_hh_l0)[None]
+                y = hidden.transpose(0, 1)
+            else:
+                y, hidden = self.recurrent(x, previous)
+            x = x + (self.dropout(y) if self.training else y)
         smooth = None
         if self.smoothing is not None:
             x, smooth = self.smoothing(x, None if state is None else state.smooth)
-        return self.dropout(self.norm(x)), EncoderState(conv_history, smooth)
-
-
-def _tail(x: Tensor, count: int) -> Tensor:
-    """The last ``count`` frames of x [B,T,C], zero-padded in front when T < count."""
-    if x.shape[1] >= count:
-        return x[:, x.shape[1] - count:]
-    return torch.cat([x.new_zeros(x.shape[0], count - x.shape[1], x.shape[2]), x], dim=1)
+        return self.dropout(self.norm(x)), EncoderState(conv_history, smooth, hidden)
 
 
 class LarynxTransformer(nn.Module):
@@ -468,10 +539,15 @@ class LarynxTransformer(nn.Module):
         inputs = int(self.feedback) + int(self.use_eta)
         self.motion = nn.Linear(inputs, d) if inputs else None  # (without: the style rows are the token bias)
         self.style = nn.Embedding(len(self.subjects) + 1, d)
+        # Per-subject log gain of the output (people's larynx moves by different amounts for the same face:
+        # a gain is a product, which the additive style of the tokens can only approximate); 0 = the average.
+        self.style_gain = nn.Embedding(len(self.subjects) + 1, 1)
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layers))
+        self.linear = LinearPath(cfg.linear_window) if cfg.linear_window else None
         self.ln_out = nn.LayerNorm(d)
         self.head = nn.Linear(d, 1)
         nn.init.zeros_(self.style.weight)
+        nn.init.zeros_(self.style_gain.weight)
         nn.init.normal_(self.head.weight, std=0.01)
         nn.init.zeros_(self.head.bias)
 
@@ -516,7 +592,7 @@ class LarynxTransformer(nn.Module):
     def _tokens(self, previous_tau: Tensor, memory: Tensor, subject: Tensor | None, eta: Tensor | None) -> Tensor:
         """Decoder tokens [B,T,d] for previous_tau [B,T] (UV units) and expression features memory [B,T,d]."""
         base = self.token_base(memory.shape[0], subject, eta)
-        positions = torch.arange(memory.shape[1]) % self.period
+        positions = torch.arange(memory.shape[1], device=memory.device) % self.period
         tokens = base[:, positions] + memory
         if self.feedback:
             normalised = (previous_tau - self.tau_mean) / self.tau_scale
@@ -527,9 +603,16 @@ class LarynxTransformer(nn.Module):
         """Normalised tau [...] (the network's output) -> tau [...] in UV units."""
         return self.tau_mean + self.tau_scale * normalised
 
-    def _readout(self, x: Tensor) -> Tensor:
-        """Hidden states [...,d] -> tau [...] in UV units."""
-        return self.to_tau(self.head(self.ln_out(x))[..., 0])
+    def output_gain(self, batch_size: int, subject: Tensor | None) -> Tensor:
+        """The per-subject factor [B,1] of the normalised output (the unknown subject's for None)."""
+        gain = self.style_gain.weight[:1] if subject is None else self.style_gain(subject)  # [1 or B,1]
+        return torch.exp(gain).expand(batch_size, 1)
+
+    def _readout(self, x: Tensor, linear: Tensor | None, subject: Tensor | None) -> Tensor:
+        """Hidden states [B,T,d] and the linear path's output [B,T] (normalised; or None) -> tau [B,T] in UV units."""
+        y = self.head(self.ln_out(x))[..., 0]
+        y = y if linear is None else y + linear
+        return self.to_tau(y * self.output_gain(x.shape[0], subject))
 
     # ------------------------------------------------------------------ teacher forcing
 
@@ -551,7 +634,7 @@ class LarynxTransformer(nn.Module):
         x = self._tokens(previous_tau, memory, subject, eta)
         for block in self.blocks:
             x = block(x, memory)
-        return self._readout(x)
+        return self._readout(x, None if self.linear is None else self.linear(psi)[0], subject)
 
     # ------------------------------------------------------------------ decoding
 
@@ -568,7 +651,7 @@ class LarynxTransformer(nn.Module):
         the autoregressive side frame by frame; memory is O(chunk + window) beyond input and output.
         """
         stream = self.stream(psi.shape[0], subject, eta)
-        out = torch.empty(psi.shape[:2], dtype=psi.dtype)
+        out = torch.empty(psi.shape[:2], dtype=psi.dtype, device=psi.device)
         for start in range(0, psi.shape[1], chunk):
             frames = stream.encode(psi[:, start:start + chunk])
             with single_thread():
@@ -598,6 +681,7 @@ class EncodedFrame:
 
     memory: Tensor
     cross: list[Tensor]
+    linear: Tensor | None = None  # [B], the linear path's output (normalised), when the model has one
 
 
 class LarynxStream:
@@ -616,21 +700,25 @@ class LarynxStream:
         self.model = model
         self.batch_size = batch_size
         cfg = model.cfg
-        dtype = next(model.parameters()).dtype
+        weight = next(model.parameters())
+        dtype, device = weight.dtype, weight.device  # the stream lives where the model does
         heads, head_dim = cfg.n_heads, cfg.d_model // cfg.n_heads
         with torch.no_grad():  # a snapshot of the weights: make a new stream after training further
             self.token_base = model.token_base(batch_size, subject, eta).to(dtype)  # [B,period,d]
-        slopes = alibi_slopes(heads)
+            self.gain = model.output_gain(batch_size, subject).to(dtype)  # [B,1]
+        slopes = alibi_slopes(heads).to(device)
         self.blocks = []
         for _ in model.blocks:
-            state = BlockState(WindowCache(batch_size, heads, head_dim, model.window, dtype),
+            state = BlockState(WindowCache(batch_size, heads, head_dim, model.window, dtype, device),
                                step_bias(slopes, model.period, model.window, batch_size).to(dtype))
             if model.cross_window > 1:
-                state.cross_cache = WindowCache(batch_size, heads, head_dim, model.cross_window, dtype)
+                state.cross_cache = WindowCache(batch_size, heads, head_dim, model.cross_window, dtype, device)
                 state.cross_bias = step_bias(slopes, 1, model.cross_window, batch_size).to(dtype)
             self.blocks.append(state)
         self.expression_state = model.expression.initial_state(batch_size, dtype)
-        self.previous = torch.zeros(batch_size, 1, dtype=dtype)  # normalised tau of the last frame (0 = tau_mean)
+        self.linear_history = None  # the linear path's last window-1 frames of psi (None before the first)
+        # normalised tau of the last frame (0 = tau_mean)
+        self.previous = torch.zeros(batch_size, 1, dtype=dtype, device=device)
         self.position = 0
 
     @torch.inference_mode()
@@ -640,7 +728,11 @@ class LarynxStream:
         model = self.model
         memory, self.expression_state = model.expression(psi, self.expression_state)
         cross = [block.cross.encode(memory) for block in model.blocks]
-        return [EncodedFrame(m, [c[t] for c in cross]) for t, m in enumerate(memory.unbind(1))]
+        linear = [None] * psi.shape[1]
+        if model.linear is not None:
+            values, self.linear_history = model.linear(psi, self.linear_history)
+            linear = values.unbind(1)
+        return [EncodedFrame(m, [c[t] for c in cross], linear[t]) for t, m in enumerate(memory.unbind(1))]
 
     @torch.inference_mode()
     def advance(self, frame: EncodedFrame) -> Tensor:
@@ -655,6 +747,9 @@ class LarynxStream:
         for block, cross, state in zip(model.blocks, frame.cross, self.blocks):
             x = block.step(x, cross, state)
         y = model.head(model.ln_out(x))  # [B,1]
+        if frame.linear is not None:
+            y = y + frame.linear[:, None]
+        y = y * self.gain
         self.previous = y
         self.position += 1
         return y[:, 0]
@@ -662,7 +757,8 @@ class LarynxStream:
     @torch.inference_mode()
     def step(self, psi_t: Tensor) -> Tensor:
         """One live frame: psi_t [B,55] (or [55] for B = 1) -> tau_t [B] (UV units)."""
-        psi_t = torch.as_tensor(psi_t, dtype=self.previous.dtype).reshape(self.batch_size, 1, NUM_EXPRESSIONS)
+        psi_t = torch.as_tensor(psi_t, dtype=self.previous.dtype, device=self.previous.device)
+        psi_t = psi_t.reshape(self.batch_size, 1, NUM_EXPRESSIONS)
         with single_thread():
             y = self.advance(self.encode(psi_t)[0])
         return self.model.to_tau(y)
@@ -730,7 +826,9 @@ def predict_tau(model: LarynxTransformer, psi: np.ndarray, subject: str | None =
     psi = np.asarray(psi, dtype=np.float32)
     if psi.ndim != 2 or psi.shape[1] != NUM_EXPRESSIONS:
         raise InputError(f"psi of shape {psi.shape}, expected [T,{NUM_EXPRESSIONS}] expression weights")
-    index = torch.tensor([model.subject_index(subject)])
-    eta_t = torch.tensor([1.0 if eta is None else float(eta)]) if model.use_eta else None
+    device = next(model.parameters()).device
+    index = torch.tensor([model.subject_index(subject)], device=device)
+    eta_t = torch.tensor([1.0 if eta is None else float(eta)], device=device) if model.use_eta else None
     model.eval()
-    return model.generate(torch.from_numpy(psi)[None], index, eta_t)[0].numpy().astype(np.float64)
+    tau = model.generate(torch.from_numpy(psi)[None].to(device), index, eta_t)[0]
+    return tau.cpu().numpy().astype(np.float64)

@@ -83,9 +83,19 @@ def git_commit() -> str:
         return "unknown"
 
 
-def ship(run_dir: str | os.PathLike, name: str, command: str, checkpoint: str = "last.pt") -> dict:
-    """Write the weights of a ``train.py`` run as ``models/pretrained/<name>.pt`` and its manifest entry."""
+def evaluated_checkpoint(run_dir: Path) -> str:
+    """The checkpoint whose weights a run's eval.json scored: ``best.pt`` when the run restored its best weights
+    (``trainer.restore_best``), else ``last.pt``."""
+    last = load_checkpoint(run_dir / "checkpoints" / "last.pt")
+    restored = bool(last.get("config", {}).get("trainer", {}).get("restore_best"))
+    return "best.pt" if restored and (run_dir / "checkpoints" / "best.pt").is_file() else "last.pt"
+
+
+def ship(run_dir: str | os.PathLike, name: str, command: str, checkpoint: str | None = None) -> dict:
+    """Write the weights of a ``train.py`` run as ``models/pretrained/<name>.pt`` and its manifest entry
+    (``checkpoint`` None: the weights eval.json scored, :func:`evaluated_checkpoint`)."""
     run_dir = Path(run_dir)
+    checkpoint = evaluated_checkpoint(run_dir) if checkpoint is None else checkpoint
     state = load_checkpoint(run_dir / "checkpoints" / checkpoint)
     evaluation_path = run_dir / "eval.json"
     if not evaluation_path.is_file():
@@ -124,7 +134,7 @@ class ShipCli:
     run: str = REQUIRED       # the run directory (runs/<task>/<time>)
     name: str = REQUIRED      # file stem under models/pretrained/
     command: str = REQUIRED   # the command that produced the run, for the manifest
-    checkpoint: str = "last.pt"
+    checkpoint: str | None = None  # null: the weights eval.json scored (best.pt with trainer.restore_best)
 
 
 register_config("pretrained_schema", ShipCli)

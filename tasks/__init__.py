@@ -84,7 +84,7 @@ class TrainerConfig:
     With either set, ``eval_every`` decides what is trained, so a resumed run may not change it.
     """
 
-    max_steps: int = 2000
+    max_steps: int | None = 2000      # null: the task chooses from its data (its Task.total_steps)
     stop_after: int | None = None  # stop early (e.g. to test resume=true); the schedule still assumes max_steps
     log_every: int = 50
     eval_every: int = 500             # validation every this many steps (0 = only at the end)
@@ -109,7 +109,7 @@ class TrainerConfig:
             raise ValueError("early_stopping_patience and restore_best need validation during training: "
                              f"eval_every is {self.eval_every}, expected > 0")
         for name in ("max_steps", "log_every", "checkpoint_every"):
-            if getattr(self, name) < 1:
+            if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"{name} is {getattr(self, name)}, expected at least 1")
 
 

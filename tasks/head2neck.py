@@ -270,3 +270,14 @@ class Task:
 
     def model_config(self) -> dict:
         return model_config(self.model)
+
+    def to(self, device: torch.device) -> Task:
+        """Move the model, the rig, its rest rotations and the validation frames to ``device``
+        (tasks/__init__.py).  The training frames stay on the CPU: ``batch`` draws from them with a CPU
+        generator and train.py moves each batch."""
+        self.model.to(device)
+        self.rig.to(device)
+        self.rest = self.rest.to(device)
+        self.val = {name: value.to(device) for name, value in self.val.items()}
+        self._baselines = None
+        return self

@@ -2,19 +2,24 @@
 
 Data (``cfg.data``, hydra group ``data``; every sequence is resampled to ``data.fps``; tau in UV units):
 - ``data=synthetic`` (:class:`SyntheticData`): ``data.synthetic_larynx`` sequences.  Validation is
-  on held-out subjects drawn from a *shifted* generator (``data.heldout_shift``: lags, filters,
-  gains, swallow cue and shape outside the training ranges), so the figures measure generalisation
-  to people unlike the training ones, not only to new draws;
+  on new recordings of the training subjects (with their style) and on held-out subjects drawn from
+  a *shifted* generator (``data.heldout_shift``: lags, filters, gains, swallow shapes reaching outside
+  the training ranges, with the average style), reported apart as well: a person's lag or gain
+  cannot be seen in their face, so on new people every model, ridge included, is left with the
+  average person's;
 - ``data=pairs`` (:class:`PairsData`): a folder of pair files (``data.pairs``), split into training
   and validation **by take** (``data.pairs.take_of``: the files' ``take``, else the file name
   without a trailing clip number), so clips of one recording never sit on both sides.
 
-Training: random crops of ``task.crop`` frames.  ``task.augment`` can alter them in ways that keep
-psi and tau a pair: a time warp applied to both (a rate per crop times a slow sinusoidal
-modulation), a gain and an offset per expression channel of psi, whole channels dropped.  All are
-off by default: on the real-regime benchmark each made the held-out error larger (a warp changes the
-lags and time constants, which are the person's, not the speech's; a gain on psi with tau kept
-teaches an invariance the larynx does not have: its excursion follows the expression's amplitude).
+Training: random crops of ``task.crop`` frames.  With ``task.linear_init`` the model's linear path
+(``model.linear_window`` frames) starts at the ridge fit of the training data (:meth:`Task.ridge_fit`, the
+baseline's closed form and cross-validated lambda), so training starts from the linear baseline.
+``task.augment`` can alter crops in ways that keep psi and tau a pair: a time warp applied to both (a
+rate per crop times a slow sinusoidal modulation), a gain and an offset per expression channel of psi,
+whole channels dropped.  All are off by default: on the real-regime benchmark each made the held-out
+error larger (a warp changes the lags and time constants, which are the person's, not the speech's; a
+gain on psi with tau kept teaches an invariance the larynx does not have: its excursion follows the
+expression's amplitude).
 With ``model.feedback`` (FaceFormer's autoregression), teacher forcing alone lets the model lean on
 the true previous tau, which it never sees at inference, so it drifts; scheduled sampling replaces
 the fed-back tau by the model's own predictions with a probability rising from 0 to
@@ -46,7 +51,7 @@ from omegaconf import DictConfig, OmegaConf
 from data.cli import REQUIRED, register_config, to_dataclass
 from data.errors import InputError
 from data.pairs import LarynxSequence, load_pairs, split_by_take
-from data.synthetic_larynx import heldout_ranges, make_dataset, split_subjects
+from data.synthetic_larynx import heldout_ranges, make_dataset, make_sequence, split_subjects
 from models.larynx_transformer import LarynxTransformerConfig, build_model  # noqa: F401  (task protocol)
 
 # --------------------------------------------------------------------------- configs
@@ -81,6 +86,7 @@ class LarynxTaskConfig:
     style_dropout: float = 0.25   # share of crops trained with the unknown-subject style (used for new subjects)
     input_noise: float = 0.1      # std of noise on the fed-back tau, in units of tau_scale
     velocity_weight: float = 0.5  # weight of the frame-difference MSE
+    linear_init: bool = True      # start the model's linear path (model.linear_window) at the ridge fit of the data
     scheduled_sampling: ScheduledSampling = field(default_factory=ScheduledSampling)
     augment: Augment = field(default_factory=Augment)
     # trainer.max_steps null: epochs passes over the training frames, within [min_steps, max_steps].
@@ -101,7 +107,8 @@ class SyntheticData:
     seconds: float = 20.0                  # length of each sequence
     train_subjects: int = 24
     sequences_per_subject: int = 6
-    heldout_subjects: int = 6              # validation: subjects never seen in training ...
+    new_takes_per_subject: int = 1         # validation: new recordings of the training subjects, and ...
+    heldout_subjects: int = 6              # ... subjects never seen in training ...
     heldout_sequences_per_subject: int = 3
     heldout_shift: float = 1.0             # ... from a generator shifted this far (0: the training generator)
     seed: int = 0                          # data seed (independent of the training seed)
@@ -142,9 +149,12 @@ def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
         options = {"tau_noise": data.tau_noise, "swallows_per_minute": data.swallows_per_minute,
                    "blinks_per_minute": data.blinks_per_minute, "expression_noise": data.expression_noise}
         train = make_dataset(train_ids, data.sequences_per_subject, data.seconds, data.fps, data.seed, **options)
-        val = make_dataset(heldout_ids, data.heldout_sequences_per_subject, data.seconds, data.fps, data.seed,
-                           ranges=heldout_ranges(data.heldout_shift), **options)
-        return train, val
+        frames = int(round(data.seconds * data.fps))
+        new_takes = [make_sequence(subject, data.sequences_per_subject + i, frames, data.fps, data.seed, **options)
+                     for subject in train_ids for i in range(data.new_takes_per_subject)]
+        new_people = make_dataset(heldout_ids, data.heldout_sequences_per_subject, data.seconds, data.fps, data.seed,
+                                  ranges=heldout_ranges(data.heldout_shift), **options)
+        return train, new_takes + new_people
     pairs = load_pairs(data.path, data.fps)
     return split_by_take(pairs, float(data.val_fraction), int(data.split_seed), f"take in {data.path}")
 
@@ -258,6 +268,10 @@ class Task:
             "subjects": self.subjects, "tau_mean": self.tau_mean, "tau_scale": float(max(all_tau.std(), 1e-6)),
         }
         self.model = build_model(self._model_config)
+        self._ridge_fits: dict[int, tuple[np.ndarray, float]] = {}
+        if self.model.linear is not None and self.settings.linear_init:
+            weights, _ = self.ridge_fit(self.model.linear.window)
+            self.model.linear.set_weights(weights, self.tau_mean, self._model_config["tau_scale"])
 
         # Training crops are gathered (and interpolated, see batch) from one concatenated array.
         self.psi = torch.from_numpy(np.concatenate([s.psi for s in self.train]))
@@ -274,6 +288,24 @@ class Task:
 
     def model_config(self) -> dict:
         return self._model_config
+
+    def ridge_fit(self, window: int) -> tuple[np.ndarray, float]:
+        """Ridge weights on a ``window``-frame psi window of the training data and the chosen lambda (cached)."""
+        if window not in self._ridge_fits:
+            self._ridge_fits[window] = fit_ridge(self.train, window, list(self.settings.ridge_lambdas))
+        return self._ridge_fits[window]
+
+    @property
+    def device(self) -> torch.device:
+        """Where the model is (and where :meth:`predict` decodes)."""
+        return next(self.model.parameters()).device
+
+    def to(self, device: torch.device) -> Task:
+        """Move the model to ``device`` (tasks/__init__.py).  The training arrays stay on the CPU: ``batch``
+        gathers crops there from a CPU generator and train.py moves each batch; ``predict`` sends the
+        validation expressions to the model's device and brings the predictions back."""
+        self.model.to(device)
+        return self
 
     def max_steps(self) -> int:
         """Training steps for these data: ``task.epochs`` passes over the training frames, within
@@ -368,9 +400,10 @@ class Task:
             group = sequences[first:first + batch]
             length = max(len(s) for s in group)
             psi = np.stack([np.concatenate([s.psi, np.repeat(s.psi[-1:], length - len(s), 0)]) for s in group])
-            subject = torch.tensor([self._style_index(s) for s in group])
-            eta = torch.tensor([1.0 if s.eta is None else s.eta for s in group]) if self.model.use_eta else None
-            tau = self.model.generate(torch.from_numpy(psi), subject, eta).numpy()
+            subject = torch.tensor([self._style_index(s) for s in group], device=self.device)
+            eta = (torch.tensor([1.0 if s.eta is None else s.eta for s in group], device=self.device)
+                   if self.model.use_eta else None)
+            tau = self.model.generate(torch.from_numpy(psi).to(self.device), subject, eta).cpu().numpy()
             out += [tau[i, :len(s)] for i, s in enumerate(group)]  # causal: padding cannot change these
         return out
 
@@ -379,24 +412,39 @@ class Task:
         return self.model.subject_index(sequence.subject) if sequence.subject in self.subjects else 0
 
     def baselines(self) -> dict[str, float]:
-        """Validation RMSE of ridge regression on a window of psi and of the training mean (computed once)."""
+        """Validation RMSE of ridge regression on a window of psi and of the training mean (computed once),
+        over all validation sequences and over those of known and of new subjects."""
         if self._baselines is None:
             window = max(1, int(round(self.settings.ridge_window * self.fps)))
-            weights, lam = fit_ridge(self.train, window, list(self.settings.ridge_lambdas))
-            ridge = [window_features(s.psi, window) @ weights for s in self.val]
+            weights, lam = self.ridge_fit(window)
+            self._ridge = [window_features(s.psi, window) @ weights for s in self.val]
             mean = [np.full(len(s), self.tau_mean) for s in self.val]
-            self._baselines = {"ridge_rmse": rmse(ridge, self.val), "mean_rmse": rmse(mean, self.val),
+            self._baselines = {"ridge_rmse": rmse(self._ridge, self.val), "mean_rmse": rmse(mean, self.val),
                                "ridge_lambda": lam, "ridge_window_frames": float(window)}
+            for group, members in self._groups().items():
+                self._baselines[f"ridge_rmse_{group}"] = rmse([self._ridge[i] for i in members],
+                                                              [self.val[i] for i in members])
         return self._baselines
+
+    def _groups(self) -> dict[str, list[int]]:
+        """Indices of the validation sequences of subjects seen in training and of new ones, when both occur."""
+        known = [i for i, s in enumerate(self.val) if s.subject in self.subjects]
+        new = [i for i, s in enumerate(self.val) if s.subject not in self.subjects]
+        return {"known_subjects": known, "new_subjects": new} if known and new else {}
 
     def evaluate(self, final: bool = False) -> dict[str, float]:
         """Validation metrics: ``rmse`` (streamed, UV units), the baselines, their ratio, and ``val_loss``
-        (= ``rmse``; lower is better: what early stopping and best-checkpoint selection compare)."""
+        (= ``rmse``; lower is better: what early stopping and best-checkpoint selection compare); with
+        validation subjects both seen and unseen in training, each group's ``rmse_<group>`` and ridge too."""
         self.model.eval()
-        model_rmse = rmse(self.predict(self.val), self.val)
+        predictions = self.predict(self.val)
+        model_rmse = rmse(predictions, self.val)
         base = self.baselines()
         metrics = {"val_loss": model_rmse, "rmse": model_rmse, "ridge_rmse": base["ridge_rmse"],
                    "mean_rmse": base["mean_rmse"], "rmse_vs_ridge": model_rmse / base["ridge_rmse"]}
+        for group, members in self._groups().items():
+            metrics[f"rmse_{group}"] = rmse([predictions[i] for i in members], [self.val[i] for i in members])
+            metrics[f"ridge_rmse_{group}"] = base[f"ridge_rmse_{group}"]
         if final:
             frames = sum(len(s) for s in self.val)
             print(f"\ntau RMSE on {len(self.val)} validation sequences ({frames} frames at {self.fps:g} fps), "
@@ -406,6 +454,8 @@ class Task:
                                  ("training mean", base["mean_rmse"])):
                 print(f"  {label:<42}{value:.5f}")
             print(f"  transformer / ridge = {metrics['rmse_vs_ridge']:.3f}")
+            for group, members in self._groups().items():
+                print(f"  {group.replace('_', ' ')} ({len(members)} sequences): transformer "
+                      f"{metrics[f'rmse_{group}']:.5f}, ridge {metrics[f'ridge_rmse_{group}']:.5f}, ratio "
+                      f"{metrics[f'rmse_{group}'] / metrics[f'ridge_rmse_{group}']:.3f}")
         return metrics
-
-

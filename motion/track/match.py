@@ -31,6 +31,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from data.errors import InputError
+from data.progress import progress_bar
 from motion.track.config import TrackerConfig
 from motion.track.kernel import LarynxKernel, bandpass, bandpass_margins, match_window
 from motion.track.neck import NeckModel, NeckPatches
@@ -238,9 +239,7 @@ def track_sequence(frames: Iterable[np.ndarray], kernel: LarynxKernel, config: T
     matches = []
     iterator = frames
     if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(frames, total=total, unit="frame", desc="tracking")
+        iterator = progress_bar(frames, total=total, unit="frame", desc="tracking")
     for normals in iterator:
         matches.append(tracker.update(normals))
     if not matches:
