@@ -3,8 +3,8 @@
 A bar redrawn in place is made for a terminal; written to a file (a log, a CI console) every redraw
 becomes text, thousands of lines of it.  :func:`progress_bar` gives tqdm when standard error is a
 terminal, and otherwise a :class:`LineProgress`, which prints one line every ``interval`` seconds and,
-when it printed any, one at the end (a loop shorter than ``interval`` stays silent).  Both take the calls the project's loops make: iteration, ``update``,
-``set_postfix``, ``close`` and use as a context manager.
+when it printed any, one at the end (a loop shorter than ``interval`` stays silent).  Both take the calls
+the project's loops make: iteration, ``update``, ``set_postfix``, ``close`` and use as a context manager.
 """
 from __future__ import annotations
 
