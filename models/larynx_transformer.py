@@ -51,7 +51,6 @@ Conventions (shapes carry a batch B and frames T):
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 from dataclasses import dataclass, field
@@ -64,6 +63,7 @@ from torch import Tensor, nn
 from data.cli import register_config
 from data.errors import InputError
 from data.expressions import NUM_EXPRESSIONS
+from models.threads import single_thread
 
 
 @dataclass
@@ -135,25 +135,6 @@ register_config("larynx_transformer_schema", LarynxTransformerConfig, group="mod
 
 SIZES = tuple(f.name for f in dataclasses.fields(LarynxTransformerConfig))
 DATA_KEYS = tuple(f.name for f in dataclasses.fields(LarynxDataFields))
-
-
-@contextlib.contextmanager
-def single_thread():
-    """Run torch ops on one thread inside the block (restoring the setting after).
-
-    Per-frame decoding works on tensors of a few hundred numbers: intra-op parallelism cannot speed
-    them up, it only adds synchronisation, which stalls for milliseconds when another process holds
-    the other core.
-    """
-    threads = torch.get_num_threads()
-    if threads == 1:  # nothing to change (setting it is not free: a live step is a fraction of a millisecond)
-        yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def alibi_slopes(n_heads: int) -> Tensor:

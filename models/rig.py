@@ -52,7 +52,6 @@ import os
 import queue
 import threading
 from collections.abc import Sequence
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +63,7 @@ from torch.autograd.function import once_differentiable
 from data.assets import RigData
 from data.procedural_rig import build_procedural_rig
 from models.rotations import axis_angle_to_matrix, matrix_to_quaternion, quaternion_multiply
+from models.threads import single_thread
 
 SKINNINGS = ("lbs", "dqs")
 
@@ -314,20 +314,6 @@ def _usable_cpus() -> int:
         return os.cpu_count() or 1
 
 
-@contextmanager
-def _torch_single_threaded():
-    """Torch ops on the calling thread run single-threaded inside (restored after): no OpenMP regions."""
-    threads = torch.get_num_threads()
-    if threads == 1 or torch.compiler.is_compiling():
-        yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
-
-
 class _ChunkWorkers:
     """Helper threads that run whole chunks of a forward pass beside the caller.
 
@@ -365,7 +351,7 @@ class _ChunkWorkers:
 
     def run(self, task, count: int, threads: int) -> None:
         """``task(i)`` for every i < count on the calling thread and ``threads - 1`` helpers; the first
-        exception is re-raised here.  Call under ``_torch_single_threaded``."""
+        exception is re-raised here.  Call under ``single_thread``."""
         helpers = min(threads, count) - 1
         if helpers <= 0:
             for i in range(count):
@@ -558,7 +544,7 @@ class _PosedChunks(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad):
         needs = ctx.needs_input_grad[2:]
-        with _torch_single_threaded():
+        with single_thread():
             found = ctx.chunks.gradients(ctx.threads, grad, needs, *ctx.saved_tensors)
         return (None, None, *found)
 
@@ -759,7 +745,7 @@ class HeadNeckModel(nn.Module):
         """
         skinning = _skinning_name(self.skinning if skinning is None else skinning)
         threads = torch.get_num_threads()
-        with _torch_single_threaded():
+        with single_thread():
             return self._pose(theta, psi, tau, eta, beta, larynx_weights, skinning, threads)
 
     # ------------------------------------------------------------------ the forward pass
