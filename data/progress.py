@@ -21,8 +21,9 @@ class LineProgress:
     def __init__(self, iterable: Iterable | None = None, *, total: int | None = None, desc: str = "",
                  unit: str = "it", initial: int = 0, interval: float = 30.0, disable: bool = False, stream=None):
         self.iterable, self.desc, self.unit, self.interval, self.disable = iterable, desc, unit, interval, disable
-        self.total = total if total is not None or iterable is None or not hasattr(iterable, "__len__") else (
-            initial + len(iterable))
+        if total is None and hasattr(iterable, "__len__"):
+            total = initial + len(iterable)
+        self.total = total
         self.n, self.initial, self.postfix = initial, initial, ""
         self.stream = stream if stream is not None else sys.stderr
         self.started = self.last = time.perf_counter()

@@ -25,10 +25,6 @@ chosen for that regime on real expressions (``benchmarks/bench_larynx_real.py``;
   window sees past expressions, not only past tau;
 - a per-subject output gain (``style_gain``) beside the additive style: people differ by how far
   their larynx moves for the same face, a product;
-- optionally a linear path beside the network (:class:`LinearPath`, ``linear_window`` frames of psi
-  straight to the output), which the task starts at the ridge fit of its training data, so that the
-  network begins where the linear baseline ends (off by default: no gain measured, even on expressions
-  far from the training ones, where one might expect it to extrapolate as ridge does);
 - ``period`` 1: the attention bias falls per frame (ALiBi slopes 1/4 ... 1/256 per frame: time
   scales of 4 to 256 frames) and the positional encoding is constant; FaceFormer's period of
   speech-animation frames (25 at 25 fps) has no counterpart in the larynx;
@@ -90,11 +86,6 @@ class LarynxTransformerConfig:
     # A gated recurrent layer (GRU, residual) after the convolutions: state of unbounded memory at a flat
     # per-frame cost (a swallow in progress, a refractory time, an effort that builds up over seconds).
     recurrent: bool = True
-    # Frames of psi seen by a linear path added to the output (0: none): a causal linear filter, as the ridge
-    # baseline, which the task initialises with the ridge fit of its training data (task.linear_init), so
-    # the network starts where ridge ends.  Off by default: on the real-expression benchmark it changed
-    # nothing beyond the spread of seeds (benchmarks/README.md).
-    linear_window: int = 0
     dropout: float = 0.1       # on the expression features, attention outputs and MLP outputs
     # Feed the previous frame's tau back into the tokens (FaceFormer's autoregression).  At inference the
     # fed-back tau is the model's own prediction, a function of the past psi the tokens already see, so it
@@ -105,8 +96,6 @@ class LarynxTransformerConfig:
     def __post_init__(self) -> None:
         if self.d_model % self.n_heads or (self.d_model // self.n_heads) % 2:
             raise ValueError(f"d_model {self.d_model} must split into {self.n_heads} heads of even size")
-        if self.linear_window < 0:
-            raise ValueError(f"linear_window must be 0 (none) or more frames, got {self.linear_window}")
         for name in ("n_layers", "d_ff", "window", "cross_window", "period", "expression_kernel"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
@@ -345,7 +334,7 @@ class CausalConv(nn.Module):
 
     def __init__(self, channels: int, kernel: int, dilation: int):
         super().__init__()
-        self.kernel, self.dilation = kernel, dilation
+        self.dilation = dilation
         self.history = (kernel - 1) * dilation  # past frames each output needs
         self.conv = nn.Conv1d(channels, channels, kernel, dilation=dilation)
 
@@ -401,36 +390,6 @@ class Smoothing(nn.Module):
             state = smoothed[:, -1]
             out.append(smoothed)
         return x + self.mix(torch.cat(out, dim=1)), state
-
-
-class LinearPath(nn.Module):
-    """y[t] = sum_k w_k . psi[t-k] + b over the last ``window`` frames (the first frame repeated before it, as
-    :func:`tasks.larynx_transformer.window_features`): psi [B,T,55] -> [B,T], in normalised tau units."""
-
-    def __init__(self, window: int):
-        super().__init__()
-        self.window = window
-        self.weight = nn.Parameter(torch.zeros(window, NUM_EXPRESSIONS))  # row k: the frame k frames back
-        self.bias = nn.Parameter(torch.zeros(1))
-
-    def set_weights(self, weights: np.ndarray, tau_mean: float, tau_scale: float) -> None:
-        """Take ridge weights [55*window + 1] (window_features' layout: oldest frame first, then 1; UV units)."""
-        w = torch.as_tensor(np.asarray(weights[:-1]).reshape(self.window, NUM_EXPRESSIONS), dtype=self.weight.dtype)
-        with torch.no_grad():
-            self.weight.copy_(w.flip(0) / tau_scale)
-            self.bias.fill_((float(weights[-1]) - tau_mean) / tau_scale)
-
-    def forward(self, psi: Tensor, history: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """psi [B,T,55] after ``history`` [B,window-1,55] (None: the first frame repeated) -> (y [B,T], the
-        history after psi)."""
-        if history is None:
-            history = psi[:, :1].expand(-1, self.window - 1, -1)
-        joined = torch.cat([history, psi], dim=1)
-        after = joined[:, joined.shape[1] - (self.window - 1):]
-        kernel = self.weight.flip(0).T[None]  # [1,55,window], oldest frame first
-        if psi.shape[1] == 1:  # one live frame
-            return (joined.flatten(1) @ kernel[0].T.flatten() + self.bias)[:, None], after
-        return F.conv1d(joined.transpose(1, 2), kernel)[:, 0] + self.bias, after
 
 
 @dataclass
@@ -524,7 +483,6 @@ class LarynxTransformer(nn.Module):
         # a gain is a product, which the additive style of the tokens can only approximate); 0 = the average.
         self.style_gain = nn.Embedding(len(self.subjects) + 1, 1)
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layers))
-        self.linear = LinearPath(cfg.linear_window) if cfg.linear_window else None
         self.ln_out = nn.LayerNorm(d)
         self.head = nn.Linear(d, 1)
         nn.init.zeros_(self.style.weight)
@@ -589,11 +547,9 @@ class LarynxTransformer(nn.Module):
         gain = self.style_gain.weight[:1] if subject is None else self.style_gain(subject)  # [1 or B,1]
         return torch.exp(gain).expand(batch_size, 1)
 
-    def _readout(self, x: Tensor, linear: Tensor | None, subject: Tensor | None) -> Tensor:
-        """Hidden states [B,T,d] and the linear path's output [B,T] (normalised; or None) -> tau [B,T] in UV units."""
-        y = self.head(self.ln_out(x))[..., 0]
-        y = y if linear is None else y + linear
-        return self.to_tau(y * self.output_gain(x.shape[0], subject))
+    def _readout(self, x: Tensor, subject: Tensor | None) -> Tensor:
+        """Hidden states [B,T,d] -> tau [B,T] in UV units."""
+        return self.to_tau(self.head(self.ln_out(x))[..., 0] * self.output_gain(x.shape[0], subject))
 
     # ------------------------------------------------------------------ teacher forcing
 
@@ -615,7 +571,7 @@ class LarynxTransformer(nn.Module):
         x = self._tokens(previous_tau, memory, subject, eta)
         for block in self.blocks:
             x = block(x, memory)
-        return self._readout(x, None if self.linear is None else self.linear(psi)[0], subject)
+        return self._readout(x, subject)
 
     # ------------------------------------------------------------------ decoding
 
@@ -662,7 +618,6 @@ class EncodedFrame:
 
     memory: Tensor
     cross: list[Tensor]
-    linear: Tensor | None = None  # [B], the linear path's output (normalised), when the model has one
 
 
 class LarynxStream:
@@ -697,7 +652,6 @@ class LarynxStream:
                 state.cross_bias = step_bias(slopes, 1, model.cross_window, batch_size).to(dtype)
             self.blocks.append(state)
         self.expression_state = model.expression.initial_state(batch_size, dtype)
-        self.linear_history = None  # the linear path's last window-1 frames of psi (None before the first)
         # normalised tau of the last frame (0 = tau_mean)
         self.previous = torch.zeros(batch_size, 1, dtype=dtype, device=device)
         self.position = 0
@@ -709,11 +663,7 @@ class LarynxStream:
         model = self.model
         memory, self.expression_state = model.expression(psi, self.expression_state)
         cross = [block.cross.encode(memory) for block in model.blocks]
-        linear = [None] * psi.shape[1]
-        if model.linear is not None:
-            values, self.linear_history = model.linear(psi, self.linear_history)
-            linear = values.unbind(1)
-        return [EncodedFrame(m, [c[t] for c in cross], linear[t]) for t, m in enumerate(memory.unbind(1))]
+        return [EncodedFrame(m, [c[t] for c in cross]) for t, m in enumerate(memory.unbind(1))]
 
     @torch.inference_mode()
     def advance(self, frame: EncodedFrame) -> Tensor:
@@ -727,10 +677,7 @@ class LarynxStream:
             x = torch.addcmul(x, self.previous, model.motion.weight[:, 0])
         for block, cross, state in zip(model.blocks, frame.cross, self.blocks):
             x = block.step(x, cross, state)
-        y = model.head(model.ln_out(x))  # [B,1]
-        if frame.linear is not None:
-            y = y + frame.linear[:, None]
-        y = y * self.gain
+        y = model.head(model.ln_out(x)) * self.gain  # [B,1]
         self.previous = y
         self.position += 1
         return y[:, 0]

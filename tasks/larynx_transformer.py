@@ -11,9 +11,7 @@ Data (``cfg.data``, hydra group ``data``; every sequence is resampled to ``data.
   and validation **by take** (``data.pairs.take_of``: the files' ``take``, else the file name
   without a trailing clip number), so clips of one recording never sit on both sides.
 
-Training: random crops of ``task.crop`` frames.  With ``task.linear_init`` the model's linear path
-(``model.linear_window`` frames) starts at the ridge fit of the training data (:meth:`Task.ridge_fit`, the
-baseline's closed form and cross-validated lambda), so training starts from the linear baseline.
+Training: random crops of ``task.crop`` frames.
 ``task.augment`` can alter crops in ways that keep psi and tau a pair: a time warp applied to both (a
 rate per crop times a slow sinusoidal modulation), a gain and an offset per expression channel of psi,
 whole channels dropped.  All are off by default: on the real-regime benchmark each made the held-out
@@ -86,7 +84,6 @@ class LarynxTaskConfig:
     style_dropout: float = 0.25   # share of crops trained with the unknown-subject style (used for new subjects)
     input_noise: float = 0.1      # std of noise on the fed-back tau, in units of tau_scale
     velocity_weight: float = 0.5  # weight of the frame-difference MSE
-    linear_init: bool = True      # start the model's linear path (model.linear_window) at the ridge fit of the data
     scheduled_sampling: ScheduledSampling = field(default_factory=ScheduledSampling)
     augment: Augment = field(default_factory=Augment)
     # trainer.max_steps null: epochs passes over the training frames, within [min_steps, max_steps].
@@ -268,10 +265,6 @@ class Task:
             "subjects": self.subjects, "tau_mean": self.tau_mean, "tau_scale": float(max(all_tau.std(), 1e-6)),
         }
         self.model = build_model(self._model_config)
-        self._ridge_fits: dict[int, tuple[np.ndarray, float]] = {}
-        if self.model.linear is not None and self.settings.linear_init:
-            weights, _ = self.ridge_fit(self.model.linear.window)
-            self.model.linear.set_weights(weights, self.tau_mean, self._model_config["tau_scale"])
 
         # Training crops are gathered (and interpolated, see batch) from one concatenated array.
         self.psi = torch.from_numpy(np.concatenate([s.psi for s in self.train]))
@@ -288,12 +281,6 @@ class Task:
 
     def model_config(self) -> dict:
         return self._model_config
-
-    def ridge_fit(self, window: int) -> tuple[np.ndarray, float]:
-        """Ridge weights on a ``window``-frame psi window of the training data and the chosen lambda (cached)."""
-        if window not in self._ridge_fits:
-            self._ridge_fits[window] = fit_ridge(self.train, window, list(self.settings.ridge_lambdas))
-        return self._ridge_fits[window]
 
     @property
     def device(self) -> torch.device:
@@ -416,7 +403,7 @@ class Task:
         over all validation sequences and over those of known and of new subjects."""
         if self._baselines is None:
             window = max(1, int(round(self.settings.ridge_window * self.fps)))
-            weights, lam = self.ridge_fit(window)
+            weights, lam = fit_ridge(self.train, window, list(self.settings.ridge_lambdas))
             self._ridge = [window_features(s.psi, window) @ weights for s in self.val]
             mean = [np.full(len(s), self.tau_mean) for s in self.val]
             self._baselines = {"ridge_rmse": rmse(self._ridge, self.val), "mean_rmse": rmse(mean, self.val),

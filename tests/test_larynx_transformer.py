@@ -50,7 +50,7 @@ def one_thread():
 
 TINY_MODEL = {"d_model": 16, "n_heads": 2, "n_layers": 2, "d_ff": 32, "window": 16, "cross_window": 1, "period": 5,
               "expression_kernel": 3, "expression_dilations": [1, 2, 4], "smoothing_frames": 20.0, "recurrent": True,
-              "linear_window": 8, "dropout": 0.0, "feedback": False, "use_eta": False}
+              "dropout": 0.0, "feedback": False, "use_eta": False}
 DATA_FIELDS = {"fps": 30.0, "subjects": [], "tau_mean": 0.01, "tau_scale": 0.02}  # what the task takes from the data
 
 
@@ -382,30 +382,6 @@ def fit(cfg, run_dir: Path):
 
     run_dir.mkdir(parents=True, exist_ok=True)
     return train.fit(cfg, run_dir)
-
-
-def test_the_linear_path_starts_at_the_ridge_fit():
-    """task.linear_init: before training, the linear path alone (network output zeroed) predicts the ridge regression
-    on its window of the training data, streamed; a wrong layout (frames reversed) would not."""
-    from tasks.larynx_transformer import Task, window_features
-
-    task = Task(tiny_config(["model.linear_window=12"], data=["data.train_subjects=3", "data.sequences_per_subject=2",
-                                                             "data.heldout_subjects=1", "data.seconds=8"]))
-    weights, _ = task.ridge_fit(12)
-    with torch.no_grad():
-        task.model.head.weight.zero_()
-        task.model.head.bias.zero_()
-    for sequence in task.val[:2]:
-        ridge = window_features(sequence.psi, 12) @ weights
-        streamed = predict_tau(task.model, sequence.psi, sequence.subject)
-        assert np.abs(streamed - ridge).max() < 1e-5 * max(1.0, np.abs(ridge).max())
-        assert np.abs(ridge - sequence.tau).std() < sequence.tau.std()  # the fit means something
-    reversed_weights = np.concatenate([weights[:-1].reshape(12, -1)[::-1].ravel(), weights[-1:]])
-    assert np.abs(window_features(task.val[0].psi, 12) @ reversed_weights - ridge).max() > 1e-4
-    untrained = Task(tiny_config(["model.linear_window=12", "task.linear_init=false"],
-                                 data=["data.train_subjects=3", "data.sequences_per_subject=2",
-                                       "data.heldout_subjects=1", "data.seconds=8"]))
-    assert float(untrained.model.linear.weight.detach().abs().max()) == 0.0
 
 
 def test_tiny_training_learns_the_generator(tmp_path, capsys):
