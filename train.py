@@ -50,6 +50,7 @@ import importlib.util
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -539,17 +540,36 @@ def _fit(cfg: DictConfig, trainer, run_dir: Path, ranks: Ranks, device: torch.de
     final["train_seconds"] = elapsed
     log.log(stop, "final", final)
     write_text(run_dir / "eval.json", json.dumps(final, indent=2) + "\n")
-    print(f"checkpoint: {checkpoint_path}\nevaluation: {run_dir / 'eval.json'}")
+    if restored:
+        print(f"checkpoint: {best_path} (the evaluated, best weights; {checkpoint_path.name} holds the last ones)")
+    else:
+        print(f"checkpoint: {checkpoint_path}")
+    print(f"evaluation: {run_dir / 'eval.json'}")
     return final
 
 
 @hydra.main(version_base=None, config_path="configs", config_name="train")
 def main(cfg: DictConfig) -> None:
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        fit(cfg, Path(HydraConfig.get().runtime.output_dir))
+        fit(cfg, run_dir)
     except InputError as e:  # bad data or a refused resume: the message, status 2, no traceback (data.cli)
         print(f"error: {e}", file=sys.stderr)
+        if not cfg.resume:
+            discard_unstarted_run(run_dir)
         sys.exit(2)
+
+
+def discard_unstarted_run(run_dir: Path) -> None:
+    """Remove what hydra wrote into ``run_dir`` (``.hydra/``, the job's log) for a run refused before it saved
+    anything, and the folder if that leaves it empty: a refused run leaves no half-made run folder."""
+    if (run_dir / "checkpoints").exists() or not run_dir.is_dir():
+        return
+    shutil.rmtree(run_dir / ".hydra", ignore_errors=True)
+    for log_file in run_dir.glob("*.log"):
+        log_file.unlink(missing_ok=True)
+    if not any(run_dir.iterdir()):
+        run_dir.rmdir()
 
 
 def check_command_line(argv: list[str]) -> None:

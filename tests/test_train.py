@@ -154,6 +154,22 @@ def test_cli_refused_resume_is_an_error_with_status_2(tmp_path):
     assert result.stderr.startswith("error: ") and "last.pt" in result.stderr and "Traceback" not in result.stderr
 
 
+
+def test_cli_refused_data_leaves_no_run_folder(tmp_path):
+    """Bad data refused before training: the message naming the path, status 2, and no run folder left behind
+    (hydra's .hydra/ and log are removed with it)."""
+    import subprocess
+    import sys
+
+    run_dir = tmp_path / "run"
+    result = subprocess.run([sys.executable, "train.py", "task=larynx_transformer", "data=pairs",
+                             f"data.path={tmp_path / 'missing'}", f"hydra.run.dir={run_dir}", "trainer.progress=false"],
+                            cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2, result.stderr
+    assert f"error: {tmp_path / 'missing'}: not a folder" in result.stderr and "Traceback" not in result.stderr
+    assert not run_dir.exists(), list(run_dir.rglob("*"))
+
+
 # --------------------------------------------------------------------------- the loop's arithmetic
 
 
