@@ -79,7 +79,10 @@ class LarynxTaskConfig:
     """``task=larynx_transformer``: crops, losses, augmentation, the length of training, the baselines."""
 
     name: str = "larynx_transformer"
-    crop: int = 128               # frames per training crop (must exceed model.window)
+    # Frames per training crop (must exceed model.window; the longest sequence's length when all are shorter).
+    # The recurrent state runs from the crop's start, and at inference over whole takes: crops of 12.8 s
+    # let it learn drives that build up over seconds (benchmarks/README.md, "Expression -> larynx").
+    crop: int = 384
     batch_size: int = 16
     style_dropout: float = 0.25   # share of crops trained with the unknown-subject style (used for new subjects)
     input_noise: float = 0.1      # std of noise on the fed-back tau, in units of tau_scale
@@ -156,17 +159,28 @@ def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
     return split_by_take(pairs, float(data.val_fraction), int(data.split_seed), f"take in {data.path}")
 
 
+def crop_for(train: list[LarynxSequence], crop: int, window: int) -> int:
+    """The training crop: ``task.crop`` frames, or the longest training sequence when all are shorter
+    (printed); InputError when even that does not exceed ``model.window``."""
+    longest = max(len(s) for s in train)
+    if longest <= window:
+        raise InputError(f"no training sequence is longer than model.window={window} frames (longest: {longest}); "
+                         f"training needs crops of full attention windows: lower model.window")
+    if longest < crop:
+        print(f"larynx_transformer: every training sequence is shorter than task.crop={crop} frames: crops of "
+              f"{longest} frames (the longest)")
+    return min(crop, longest)
+
+
 def usable_sequences(train: list[LarynxSequence], crop: int) -> list[LarynxSequence]:
     """The training sequences of at least ``crop`` frames; the shorter ones are reported (printed) and
-    dropped, and InputError if none is left."""
+    dropped (:func:`crop_for` leaves at least one)."""
     usable = [s for s in train if len(s) >= crop]
     short = [s for s in train if len(s) < crop]
-    if not usable:
-        raise InputError(f"no training sequence has task.crop={crop} frames (longest: "
-                         f"{max(len(s) for s in train)}); lower task.crop")
     if short:
-        print(f"larynx_transformer: {len(short)} of {len(train)} training sequences are shorter than task.crop="
-              f"{crop} frames and are not used: " + ", ".join(f"{s.name} ({len(s)} frames)" for s in short))
+        print(f"larynx_transformer: {len(short)} of {len(train)} training sequences are shorter than the crop of "
+              f"{crop} frames and are not used (lower task.crop to use them): "
+              + ", ".join(f"{s.name} ({len(s)} frames)" for s in short))
     return usable
 
 
@@ -256,6 +270,7 @@ class Task:
             raise InputError(f"task.crop ({crop}) must exceed model.window ({sizes.window}) so training "
                              f"sees full attention windows")
         train, self.val = load_sequences(cfg.data)
+        self.crop = crop = crop_for(train, crop, sizes.window)  # frames per training crop
         self.train = usable_sequences(train, crop)  # the model, its normalisation and the baselines see these
         self.subjects = sorted({s.subject for s in self.train if s.subject is not None})
         all_tau = np.concatenate([s.tau for s in self.train]).astype(np.float64)
@@ -299,7 +314,7 @@ class Task:
         ``[task.min_steps, task.max_steps]`` (used when ``trainer.max_steps`` is null)."""
         s = self.settings
         frames = float(self.lengths.sum())
-        steps = s.epochs * frames / (s.batch_size * s.crop)
+        steps = s.epochs * frames / (s.batch_size * self.crop)
         return int(min(s.max_steps, max(s.min_steps, round(steps))))
 
     # ------------------------------------------------------------------ training
@@ -307,7 +322,7 @@ class Task:
     def _positions(self, size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """Source positions [B,crop] (float, frames into the concatenated training arrays) of ``size`` crops,
         time-warped (``task.augment``), and each crop's sequence [B]."""
-        crop, augment = int(self.settings.crop), self.settings.augment
+        crop, augment = self.crop, self.settings.augment
         sequence = torch.multinomial(self.crop_counts.double(), size, replacement=True, generator=generator)
         uniform = torch.rand(size, 1, generator=generator, dtype=torch.float64)
         log_rate = math.log1p(augment.time_warp) * (2 * uniform - 1)
@@ -323,7 +338,7 @@ class Task:
 
     def batch(self, step: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """Random crops [B,crop] of training sequences, augmented, plus the random draws of the loss."""
-        size, crop = int(self.settings.batch_size), int(self.settings.crop)
+        size, crop = int(self.settings.batch_size), self.crop
         positions, sequence = self._positions(size, generator)
         low = positions.floor().long()
         high = torch.minimum(low + 1, (self.starts[sequence] + self.lengths[sequence] - 1)[:, None])

@@ -547,15 +547,23 @@ def test_sequences_shorter_than_a_crop_are_reported_and_left_out(tmp_path, capsy
     assert len(short) >= 2 and "s5" in {s.subject for s in everything}  # the split leaves short files in training
     task = Task(cfg)
     printed = capsys.readouterr().out
-    assert f"{len(short)} of {len(everything)} training sequences are shorter than task.crop=64" in printed
+    assert f"{len(short)} of {len(everything)} training sequences are shorter than the crop of 64 frames" in printed
     assert all(f"{name} (40 frames)" in printed for name in short)
     assert sorted(s.name for s in task.train) == sorted(s.name for s in everything if len(s) >= 64)
     assert task.model.subjects == ["s0", "s1"]  # not s5, seen in short files only
     usable_tau = np.concatenate([s.tau for s in everything if len(s) >= 64]).astype(np.float64)
     assert float(task.model.tau_mean) == pytest.approx(usable_tau.mean(), rel=1e-5)
     assert float(task.model.tau_scale) == pytest.approx(usable_tau.std(), rel=1e-4)
-    with pytest.raises(InputError, match="no training sequence has task.crop=300 frames .longest: 240."):
-        Task(tiny_config(["data=pairs", f"data.path={folder}", "data.val_fraction=0.2", "task.crop=300"], data=[]))
+    # All shorter than task.crop: crops of the longest (the short files still left out), said so.
+    longest = Task(tiny_config(["data=pairs", f"data.path={folder}", "data.val_fraction=0.2", "task.crop=300",
+                                "model.window=16"], data=[]))
+    printed = capsys.readouterr().out
+    assert "every training sequence is shorter than task.crop=300 frames: crops of 240 frames" in printed
+    assert longest.crop == 240 and longest.batch(0, torch.Generator().manual_seed(0))["psi"].shape[1] == 240
+    assert sorted(s.name for s in longest.train) == sorted(s.name for s in task.train)
+    with pytest.raises(InputError, match="no training sequence is longer than model.window=240 frames .longest: 240."):
+        Task(tiny_config(["data=pairs", f"data.path={folder}", "data.val_fraction=0.2", "task.crop=300",
+                          "model.window=240"], data=[]))
 
 
 # --------------------------------------------------------------------------- inference CLI
