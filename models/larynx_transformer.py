@@ -241,12 +241,6 @@ class SelfAttention(nn.Module):
         q, k, v = (split_heads(part, self.n_heads) for part in self.qkv(x).chunk(3, dim=-1))
         return self.out(merge_heads(banded_attention(q, k, v, self.slopes, self.period, self.window)))
 
-    def step(self, x: Tensor, cache: WindowCache, bias: Tensor) -> Tensor:
-        """One frame: x [B,d] -> [B,d]; its keys and values join ``cache``; bias [B*H,n,1] for the n cached frames."""
-        qkv = self.qkv(x).view(x.shape[0], 3, self.n_heads, -1)  # [B,3,H,dh]
-        keys, values = cache.append(qkv[:, 1:].transpose(0, 1))
-        return self.out(attend_one(qkv[:, 0], keys, values, bias[:, -keys.shape[2]:]))
-
 
 class CrossAttention(nn.Module):
     """Attention of frame t to the encoded expressions of frames t-cross_window+1..t (bias -slope * offset).
@@ -280,20 +274,12 @@ class CrossAttention(nn.Module):
         k, v = (split_heads(part, self.n_heads) for part in self.kv(memory).chunk(2, dim=-1))  # [B,H,C,dh]
         return list(torch.stack([k, v]).unbind(3))
 
-    def step(self, x: Tensor, encoded: Tensor, cache: WindowCache | None, bias: Tensor | None) -> Tensor:
-        """One frame: x [B,d], ``encoded`` its frame of :meth:`encode` -> [B,d]."""
-        if self.window == 1:
-            return encoded
-        q = self.q(self.norm(x)).view(x.shape[0], self.n_heads, -1)
-        keys, values = cache.append(encoded)
-        return self.out(attend_one(q, keys, values, bias[:, -keys.shape[2]:]))
-
 
 class Block(nn.Module):
     """Pre-norm decoder block: periodic-biased causal self-attention, aligned cross-attention, MLP.
 
-    ``forward`` runs whole sequences (teacher forcing), ``step`` one frame from the caches of a
-    :class:`LarynxStream`; both use the same sub-modules (``step`` is for inference: no dropout).
+    ``forward`` runs whole sequences (teacher forcing); :class:`LarynxStream` runs the same computation one
+    frame at a time from a snapshot of these weights (:class:`FrameWeights`).
     """
 
     def __init__(self, cfg: LarynxTransformerConfig):
@@ -310,12 +296,6 @@ class Block(nn.Module):
         x = x + self.dropout(self.attention(self.ln_self(x)))
         x = x + self.dropout(self.cross(x, memory))
         return x + self.dropout(self.mlp(self.ln_mlp(x)))
-
-    def step(self, x: Tensor, encoded: Tensor, state: BlockState) -> Tensor:
-        """One frame: x [B,d], ``encoded`` the frame's :meth:`CrossAttention.encode` output -> [B,d]."""
-        x = x + self.attention.step(self.ln_self(x), state.self_cache, state.self_bias)
-        x = x + self.cross.step(x, encoded, state.cross_cache, state.cross_bias)
-        return x + self.mlp(self.ln_mlp(x))
 
 
 @dataclass
@@ -345,9 +325,6 @@ class CausalConv(nn.Module):
             history = x.new_zeros(x.shape[0], self.history, x.shape[2])
         joined = torch.cat([history, x], dim=1)
         after = joined[:, joined.shape[1] - self.history:]
-        if x.shape[1] == 1:  # one live frame: its kernel taps times the weights (a convolution call costs more)
-            taps = joined[:, :: self.dilation].transpose(1, 2).flatten(1)  # [B,C*kernel], as the weight's layout
-            return F.linear(taps, self.conv.weight.flatten(1), self.conv.bias)[:, None], after
         return self.conv(joined.transpose(1, 2)).transpose(1, 2), after
 
 
@@ -376,9 +353,6 @@ class Smoothing(nn.Module):
         (x + mix(smoothed) [B,T,C], the smoothed value of the last frame [B,C])."""
         a = self.decay()
         state = x[:, 0] if state is None else state
-        if x.shape[1] == 1:  # one live frame
-            state = torch.lerp(x[:, 0], state, a)
-            return x + self.mix(state)[:, None], state
         out = []
         for start in range(0, x.shape[1], self.chunk):  # exact recurrence as a [C,n,n] lower-triangular matrix
             part = x[:, start:start + self.chunk]
@@ -439,19 +413,13 @@ class ExpressionEncoder(nn.Module):
             x = x + (self.dropout(y) if self.training else y)
         hidden = None
         if self.recurrent is not None:
-            previous = None if state is None else state.recurrent
-            if x.shape[1] == 1 and previous is not None:  # one live frame: the cell alone (less call overhead)
-                r = self.recurrent
-                hidden = torch.gru_cell(x[:, 0], previous[0], r.weight_ih_l0, r.weight_hh_l0, r.bias_ih_l0,
-                                        r.bias_hh_l0)[None]
-                y = hidden.transpose(0, 1)
-            else:
-                y, hidden = self.recurrent(x, previous)
+            y, hidden = self.recurrent(x, None if state is None else state.recurrent)
             x = x + (self.dropout(y) if self.training else y)
         smooth = None
         if self.smoothing is not None:
             x, smooth = self.smoothing(x, None if state is None else state.smooth)
-        return self.dropout(self.norm(x)), EncoderState(conv_history, smooth, hidden)
+        x = self.norm(x)
+        return (self.dropout(x) if self.training else x), EncoderState(conv_history, smooth, hidden)
 
 
 class LarynxTransformer(nn.Module):
@@ -611,10 +579,68 @@ class LarynxTransformer(nn.Module):
         return torch.stack(out, dim=1)
 
 
+def _affine(layer: nn.Linear) -> tuple[Tensor, Tensor]:
+    """(weight, bias) of a linear layer, for ``F.linear(x, *pair)``."""
+    return layer.weight.detach(), layer.bias.detach()
+
+
+def _norm(layer: nn.LayerNorm) -> tuple:
+    """The arguments after x of ``F.layer_norm`` for a LayerNorm."""
+    return layer.normalized_shape, layer.weight.detach(), layer.bias.detach(), layer.eps
+
+
+class FrameWeights:
+    """The weights of one live frame, taken from a model once per :class:`LarynxStream` and laid out for
+    products with a single frame.
+
+    A live frame is some forty products and sums of 64-wide vectors; calling a module, or reading a
+    parameter through one, costs as much as such a product, so the stream holds plain tensors: each
+    convolution kernel flattened in the order of its taps (oldest first), the one-frame cross-attention's
+    value and output projections multiplied into one, the low-passes' decays evaluated.
+    """
+
+    def __init__(self, model: LarynxTransformer):
+        encoder = model.expression
+        with torch.no_grad():
+            self.project = _affine(encoder.project)
+            # Conv1d weight [C_out,C_in,kernel] -> [C_out, kernel*C_in], matching taps [B,kernel,C_in] flattened
+            self.convs = [(conv.dilation, conv.conv.weight.detach().permute(0, 2, 1).flatten(1),
+                           conv.conv.bias.detach()) for conv in encoder.temporal]
+            r = encoder.recurrent
+            self.recurrent = None if r is None else tuple(
+                p.detach() for p in (r.weight_ih_l0, r.weight_hh_l0, r.bias_ih_l0, r.bias_hh_l0))
+            smoothing = encoder.smoothing
+            self.smoothing = None if smoothing is None else (smoothing.decay().detach(), _affine(smoothing.mix))
+            self.encoder_norm = _norm(encoder.norm)
+            self.motion = model.motion.weight[:, 0].detach() if model.feedback else None
+            self.blocks = [BlockFrameWeights(block) for block in model.blocks]
+            self.out_norm, self.head = _norm(model.ln_out), _affine(model.head)
+
+
+class BlockFrameWeights:
+    """One decoder block's part of :class:`FrameWeights`."""
+
+    def __init__(self, block: Block):
+        cross = block.cross
+        self.heads = block.attention.n_heads
+        self.self_norm, self.qkv, self.self_out = _norm(block.ln_self), _affine(block.attention.qkv), \
+            _affine(block.attention.out)
+        if cross.window == 1:  # out(kv(memory)) as one product
+            self.cross_values = (cross.out.weight @ cross.kv.weight,
+                                 cross.out.weight @ cross.kv.bias + cross.out.bias)
+            self.cross_norm = self.cross_query = None
+        else:
+            self.cross_values = _affine(cross.kv)
+            self.cross_norm, self.cross_query = _norm(cross.norm), _affine(cross.q)
+        self.cross_out = _affine(cross.out)
+        self.mlp_norm, self.mlp_in, self.mlp_out = _norm(block.ln_mlp), _affine(block.mlp[0]), _affine(block.mlp[2])
+
+
 @dataclass
 class EncodedFrame:
     """One frame's expression side, computed ahead by :meth:`LarynxStream.encode`: its features [B,d]
-    and per block the cross-attention input (:meth:`CrossAttention.encode`)."""
+    and per block the cross-attention input: the attention's output [B,d] with a one-frame window (it does
+    not depend on the query), else the frame's keys and values [2,B,H,dh] (:meth:`CrossAttention.encode`)."""
 
     memory: Tensor
     cross: list[Tensor]
@@ -624,11 +650,15 @@ class LarynxStream:
     """Live decoding, one frame at a time, at constant cost per frame and bounded memory.
 
     ``step(psi_t [B,55]) -> tau_t [B]`` (UV units).  The stream keeps the expression encoder's
-    state (:class:`EncoderState`: convolution history, smoothed values), per block a :class:`BlockState`
-    (a self-attention :class:`WindowCache` of ``window`` frames, and a cross-attention one of
-    ``cross_window`` frames), and the last prediction
-    (fed back into the next token with ``feedback``).  Nothing in it grows with the position
-    (:func:`tensor_bytes` measures it).
+    state (:class:`EncoderState`: convolution history, recurrent state, smoothed values), per block a
+    :class:`BlockState` (a self-attention :class:`WindowCache` of ``window`` frames, and a cross-attention
+    one of ``cross_window`` frames), and the last prediction (fed back into the next token with
+    ``feedback``).  Nothing in it grows with the position (:func:`tensor_bytes` measures it).
+
+    The frames are computed from ``weights`` (:class:`FrameWeights`), a snapshot of the model's taken when
+    the stream is made: make a new stream after training further.  Many frames given at once
+    (:meth:`encode`, as :meth:`LarynxTransformer.generate` does) run the encoder's modules over all of them;
+    the autoregressive side always runs frame by frame.
     """
 
     def __init__(self, model: LarynxTransformer, batch_size: int = 1, subject: Tensor | None = None,
@@ -639,7 +669,8 @@ class LarynxStream:
         weight = next(model.parameters())
         dtype, device = weight.dtype, weight.device  # the stream lives where the model does
         heads, head_dim = cfg.n_heads, cfg.d_model // cfg.n_heads
-        with torch.no_grad():  # a snapshot of the weights: make a new stream after training further
+        self.weights = FrameWeights(model)
+        with torch.no_grad():
             self.token_base = model.token_base(batch_size, subject, eta).to(dtype)  # [B,period,d]
             self.gain = model.output_gain(batch_size, subject).to(dtype)  # [B,1]
         slopes = alibi_slopes(heads).to(device)
@@ -659,25 +690,70 @@ class LarynxStream:
     @torch.inference_mode()
     def encode(self, psi: Tensor) -> list[EncodedFrame]:
         """The expression side of frames psi [B,C,55] that continue the stream, one :class:`EncodedFrame`
-        per frame (computed for all C frames at once)."""
+        per frame (computed for all C frames at once, by the model's modules)."""
         model = self.model
         memory, self.expression_state = model.expression(psi, self.expression_state)
         cross = [block.cross.encode(memory) for block in model.blocks]
         return [EncodedFrame(m, [c[t] for c in cross]) for t, m in enumerate(memory.unbind(1))]
 
     @torch.inference_mode()
+    def encode_frame(self, psi_t: Tensor) -> EncodedFrame:
+        """The expression side of one frame psi_t [B,55] that continues the stream: what :meth:`encode` gives
+        for a single frame, computed from :attr:`weights` (ExpressionEncoder.forward step by step)."""
+        weights, state = self.weights, self.expression_state
+        x = F.linear(psi_t, *weights.project)
+        conv_history = []
+        for (dilation, kernel, bias), history in zip(weights.convs, state.conv):
+            joined = torch.cat([history, x[:, None]], dim=1)  # [B,history+1,d]
+            conv_history.append(joined[:, 1:])
+            x = x + F.gelu(F.linear(joined[:, ::dilation].flatten(1), kernel, bias), approximate="tanh")
+        hidden = state.recurrent
+        if weights.recurrent is not None:
+            before = x.new_zeros(x.shape) if hidden is None else hidden[0]
+            hidden = torch.gru_cell(x, before, *weights.recurrent)
+            x = x + hidden
+            hidden = hidden[None]
+        smooth = state.smooth
+        if weights.smoothing is not None:
+            decay, mix = weights.smoothing
+            smooth = x if smooth is None else torch.lerp(x, smooth, decay)
+            x = x + F.linear(smooth, *mix)
+        self.expression_state = EncoderState(conv_history, smooth, hidden)
+        memory = F.layer_norm(x, *weights.encoder_norm)
+        cross = []
+        for block in weights.blocks:
+            encoded = F.linear(memory, *block.cross_values)
+            if block.cross_query is not None:  # keys and values [2,B,H,dh]
+                encoded = encoded.view(x.shape[0], 2, block.heads, -1).transpose(0, 1)
+            cross.append(encoded)
+        return EncodedFrame(memory, cross)
+
+    @torch.inference_mode()
     def advance(self, frame: EncodedFrame) -> Tensor:
-        """Decode the next frame from its encoded expressions (see :meth:`encode`).
+        """Decode the next frame from its encoded expressions (:meth:`encode`, :meth:`encode_frame`): the
+        decoder blocks' ``forward`` for one frame, from :attr:`weights` and the caches.
 
         Returns the normalised prediction [B] ((tau - tau_mean) / tau_scale).
         """
-        model = self.model
-        x = self.token_base[:, self.position % model.period] + frame.memory
-        if model.feedback:
-            x = torch.addcmul(x, self.previous, model.motion.weight[:, 0])
-        for block, cross, state in zip(model.blocks, frame.cross, self.blocks):
-            x = block.step(x, cross, state)
-        y = model.head(model.ln_out(x)) * self.gain  # [B,1]
+        weights, batch = self.weights, self.batch_size
+        x = self.token_base[:, self.position % self.model.period] + frame.memory
+        if weights.motion is not None:
+            x = torch.addcmul(x, self.previous, weights.motion)
+        for block, cross, state in zip(weights.blocks, frame.cross, self.blocks):
+            qkv = F.linear(F.layer_norm(x, *block.self_norm), *block.qkv).view(batch, 3, block.heads, -1)
+            keys, values = state.self_cache.append(qkv[:, 1:].transpose(0, 1))
+            x = x + F.linear(attend_one(qkv[:, 0], keys, values, state.self_bias[:, -keys.shape[2]:]),
+                             *block.self_out)
+            if block.cross_query is None:
+                x = x + cross
+            else:
+                q = F.linear(F.layer_norm(x, *block.cross_norm), *block.cross_query).view(batch, block.heads, -1)
+                keys, values = state.cross_cache.append(cross)
+                x = x + F.linear(attend_one(q, keys, values, state.cross_bias[:, -keys.shape[2]:]),
+                                 *block.cross_out)
+            hidden = F.gelu(F.linear(F.layer_norm(x, *block.mlp_norm), *block.mlp_in), approximate="tanh")
+            x = x + F.linear(hidden, *block.mlp_out)
+        y = F.linear(F.layer_norm(x, *weights.out_norm), *weights.head) * self.gain  # [B,1]
         self.previous = y
         self.position += 1
         return y[:, 0]
@@ -686,9 +762,9 @@ class LarynxStream:
     def step(self, psi_t: Tensor) -> Tensor:
         """One live frame: psi_t [B,55] (or [55] for B = 1) -> tau_t [B] (UV units)."""
         psi_t = torch.as_tensor(psi_t, dtype=self.previous.dtype, device=self.previous.device)
-        psi_t = psi_t.reshape(self.batch_size, 1, NUM_EXPRESSIONS)
+        psi_t = psi_t.reshape(self.batch_size, NUM_EXPRESSIONS)
         with single_thread():
-            y = self.advance(self.encode(psi_t)[0])
+            y = self.advance(self.encode_frame(psi_t))
         return self.model.to_tau(y)
 
 
