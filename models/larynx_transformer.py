@@ -579,61 +579,78 @@ class LarynxTransformer(nn.Module):
         return torch.stack(out, dim=1)
 
 
-def _affine(layer: nn.Linear) -> tuple[Tensor, Tensor]:
-    """(weight, bias) of a linear layer, for ``F.linear(x, *pair)``."""
-    return layer.weight.detach(), layer.bias.detach()
+def _affine(weight: Tensor, bias: Tensor, norm: nn.LayerNorm | None = None) -> tuple[Tensor, Tensor]:
+    """``(bias, weight.T)`` of y = x W^T + b, for ``torch.addmm(*pair...)``: ``addmm(bias, x, weight_t)``.
+
+    With ``norm``, the LayerNorm before the product is folded in: W (g * n + beta) + b = (W g) n + (W beta + b)
+    for the normalised n, so the norm runs without its affine part (:func:`_normalise`).
+    """
+    weight, bias = weight.detach(), bias.detach()
+    if norm is not None:
+        bias = bias + weight @ norm.bias.detach()
+        weight = weight * norm.weight.detach()
+    return bias, weight.t()
 
 
-def _norm(layer: nn.LayerNorm) -> tuple:
-    """The arguments after x of ``F.layer_norm`` for a LayerNorm."""
-    return layer.normalized_shape, layer.weight.detach(), layer.bias.detach(), layer.eps
+def _linear(layer: nn.Linear, norm: nn.LayerNorm | None = None) -> tuple[Tensor, Tensor]:
+    """:func:`_affine` of a linear layer."""
+    return _affine(layer.weight, layer.bias, norm)
+
+
+def _normalise(x: Tensor, eps: float) -> Tensor:
+    """LayerNorm without its affine part over the last dimension (folded into the next product, :func:`_affine`)."""
+    return F.layer_norm(x, x.shape[-1:], None, None, eps)
 
 
 class FrameWeights:
     """The weights of one live frame, taken from a model once per :class:`LarynxStream` and laid out for
     products with a single frame.
 
-    A live frame is some forty products and sums of 64-wide vectors; calling a module, or reading a
-    parameter through one, costs as much as such a product, so the stream holds plain tensors: each
+    A live frame is some hundred operations on 64-wide vectors, and each costs its call more than its
+    arithmetic: calling a module, or reading a parameter through one, costs as much as a product.  So the
+    stream holds plain tensors, in the layout of ``torch.addmm(bias, x, weight_t)`` (:func:`_affine`): each
     convolution kernel flattened in the order of its taps (oldest first), the one-frame cross-attention's
-    value and output projections multiplied into one, the low-passes' decays evaluated.
+    value and output projections multiplied into one, every LayerNorm that precedes a product folded into
+    it, the low-passes' decays evaluated.
     """
 
     def __init__(self, model: LarynxTransformer):
         encoder = model.expression
         with torch.no_grad():
-            self.project = _affine(encoder.project)
+            self.project = _linear(encoder.project)
             # Conv1d weight [C_out,C_in,kernel] -> [C_out, kernel*C_in], matching taps [B,kernel,C_in] flattened
-            self.convs = [(conv.dilation, conv.conv.weight.detach().permute(0, 2, 1).flatten(1),
-                           conv.conv.bias.detach()) for conv in encoder.temporal]
+            self.convs = [(conv.dilation, *_affine(conv.conv.weight.permute(0, 2, 1).flatten(1), conv.conv.bias))
+                          for conv in encoder.temporal]
             r = encoder.recurrent
             self.recurrent = None if r is None else tuple(
                 p.detach() for p in (r.weight_ih_l0, r.weight_hh_l0, r.bias_ih_l0, r.bias_hh_l0))
             smoothing = encoder.smoothing
-            self.smoothing = None if smoothing is None else (smoothing.decay().detach(), _affine(smoothing.mix))
-            self.encoder_norm = _norm(encoder.norm)
+            self.smoothing = None if smoothing is None else (smoothing.decay().detach(), _linear(smoothing.mix))
+            norm = encoder.norm  # its output is the memory itself: not folded
+            self.encoder_norm = norm.normalized_shape, norm.weight.detach(), norm.bias.detach(), norm.eps
             self.motion = model.motion.weight[:, 0].detach() if model.feedback else None
             self.blocks = [BlockFrameWeights(block) for block in model.blocks]
-            self.out_norm, self.head = _norm(model.ln_out), _affine(model.head)
+            self.out_eps, self.head = model.ln_out.eps, _linear(model.head, model.ln_out)
 
 
 class BlockFrameWeights:
     """One decoder block's part of :class:`FrameWeights`."""
 
     def __init__(self, block: Block):
-        cross = block.cross
-        self.heads = block.attention.n_heads
-        self.self_norm, self.qkv, self.self_out = _norm(block.ln_self), _affine(block.attention.qkv), \
-            _affine(block.attention.out)
+        cross, attention = block.cross, block.attention
+        self.heads = attention.n_heads
+        self.self_eps, self.qkv = block.ln_self.eps, _linear(attention.qkv, block.ln_self)
+        self.self_out = _linear(attention.out)
         if cross.window == 1:  # out(kv(memory)) as one product
-            self.cross_values = (cross.out.weight @ cross.kv.weight,
-                                 cross.out.weight @ cross.kv.bias + cross.out.bias)
-            self.cross_norm = self.cross_query = None
+            self.cross_values = _affine(cross.out.weight @ cross.kv.weight,
+                                        cross.out.weight @ cross.kv.bias + cross.out.bias)
+            self.cross_eps = self.cross_query = None
         else:
-            self.cross_values = _affine(cross.kv)
-            self.cross_norm, self.cross_query = _norm(cross.norm), _affine(cross.q)
-        self.cross_out = _affine(cross.out)
-        self.mlp_norm, self.mlp_in, self.mlp_out = _norm(block.ln_mlp), _affine(block.mlp[0]), _affine(block.mlp[2])
+            self.cross_values = _linear(cross.kv)
+            self.cross_eps, self.cross_query = cross.norm.eps, _linear(cross.q, cross.norm)
+        self.cross_out = _linear(cross.out)
+        self.mlp_eps, self.mlp_in = block.ln_mlp.eps, _linear(block.mlp[0], block.ln_mlp)
+        self.mlp_out = _linear(block.mlp[2])
 
 
 @dataclass
@@ -701,12 +718,12 @@ class LarynxStream:
         """The expression side of one frame psi_t [B,55] that continues the stream: what :meth:`encode` gives
         for a single frame, computed from :attr:`weights` (ExpressionEncoder.forward step by step)."""
         weights, state = self.weights, self.expression_state
-        x = F.linear(psi_t, *weights.project)
+        x = torch.addmm(weights.project[0], psi_t, weights.project[1])
         conv_history = []
-        for (dilation, kernel, bias), history in zip(weights.convs, state.conv):
+        for (dilation, bias, kernel), history in zip(weights.convs, state.conv):
             joined = torch.cat([history, x[:, None]], dim=1)  # [B,history+1,d]
             conv_history.append(joined[:, 1:])
-            x = x + F.gelu(F.linear(joined[:, ::dilation].flatten(1), kernel, bias), approximate="tanh")
+            x = x + F.gelu(torch.addmm(bias, joined[:, ::dilation].flatten(1), kernel), approximate="tanh")
         hidden = state.recurrent
         if weights.recurrent is not None:
             before = x.new_zeros(x.shape) if hidden is None else hidden[0]
@@ -717,12 +734,12 @@ class LarynxStream:
         if weights.smoothing is not None:
             decay, mix = weights.smoothing
             smooth = x if smooth is None else torch.lerp(x, smooth, decay)
-            x = x + F.linear(smooth, *mix)
+            x = x + torch.addmm(mix[0], smooth, mix[1])
         self.expression_state = EncoderState(conv_history, smooth, hidden)
         memory = F.layer_norm(x, *weights.encoder_norm)
         cross = []
         for block in weights.blocks:
-            encoded = F.linear(memory, *block.cross_values)
+            encoded = torch.addmm(block.cross_values[0], memory, block.cross_values[1])
             if block.cross_query is not None:  # keys and values [2,B,H,dh]
                 encoded = encoded.view(x.shape[0], 2, block.heads, -1).transpose(0, 1)
             cross.append(encoded)
@@ -740,20 +757,23 @@ class LarynxStream:
         if weights.motion is not None:
             x = torch.addcmul(x, self.previous, weights.motion)
         for block, cross, state in zip(weights.blocks, frame.cross, self.blocks):
-            qkv = F.linear(F.layer_norm(x, *block.self_norm), *block.qkv).view(batch, 3, block.heads, -1)
+            qkv = torch.addmm(block.qkv[0], _normalise(x, block.self_eps), block.qkv[1])
+            qkv = qkv.view(batch, 3, block.heads, -1)
             keys, values = state.self_cache.append(qkv[:, 1:].transpose(0, 1))
-            x = x + F.linear(attend_one(qkv[:, 0], keys, values, state.self_bias[:, -keys.shape[2]:]),
-                             *block.self_out)
+            attended = attend_one(qkv[:, 0], keys, values, state.self_bias[:, -keys.shape[2]:])
+            x = x + torch.addmm(block.self_out[0], attended, block.self_out[1])
             if block.cross_query is None:
                 x = x + cross
             else:
-                q = F.linear(F.layer_norm(x, *block.cross_norm), *block.cross_query).view(batch, block.heads, -1)
+                q = torch.addmm(block.cross_query[0], _normalise(x, block.cross_eps), block.cross_query[1])
                 keys, values = state.cross_cache.append(cross)
-                x = x + F.linear(attend_one(q, keys, values, state.cross_bias[:, -keys.shape[2]:]),
-                                 *block.cross_out)
-            hidden = F.gelu(F.linear(F.layer_norm(x, *block.mlp_norm), *block.mlp_in), approximate="tanh")
-            x = x + F.linear(hidden, *block.mlp_out)
-        y = F.linear(F.layer_norm(x, *weights.out_norm), *weights.head) * self.gain  # [B,1]
+                attended = attend_one(q.view(batch, block.heads, -1), keys, values,
+                                      state.cross_bias[:, -keys.shape[2]:])
+                x = x + torch.addmm(block.cross_out[0], attended, block.cross_out[1])
+            hidden = F.gelu(torch.addmm(block.mlp_in[0], _normalise(x, block.mlp_eps), block.mlp_in[1]),
+                            approximate="tanh")
+            x = x + torch.addmm(block.mlp_out[0], hidden, block.mlp_out[1])
+        y = torch.addmm(weights.head[0], _normalise(x, weights.out_eps), weights.head[1]) * self.gain  # [B,1]
         self.previous = y
         self.position += 1
         return y[:, 0]
