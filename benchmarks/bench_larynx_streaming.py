@@ -5,7 +5,7 @@
 Prints:
 - frames/s of the whole-sequence API (``generate``) and of the live per-frame API (``step``), B = 1;
 - the per-frame cost (median over 500 frames) at frame 100, 10,000 and ``--far``, and the bytes of
-  every tensor the stream holds there (``tensor_bytes``; constant: bounded memory);
+  tensors the stream carries there (``LarynxStream.state_bytes``; constant: bounded memory);
 - FaceFormer-style decoding, which reruns the model on the whole prefix at every frame
   (``generate_uncached``): its per-frame cost at prefix 100, 600 (FaceFormer's limit) and 2,000
   frames, the ratio to streaming, and the total time of a 600-frame clip both ways.
@@ -34,7 +34,6 @@ from models.larynx_transformer import (  # noqa: E402
     LarynxDataFields,
     LarynxTransformer,
     LarynxTransformerConfig,
-    tensor_bytes,
 )
 
 
@@ -63,9 +62,7 @@ def streaming_costs(model, psi: torch.Tensor, positions: list[int], span: int = 
             stream.step(frame)
             wall[p].append(time.perf_counter() - start)
             cpu[p].append(time.process_time() - start_cpu)
-    # the stream's state: its model and its snapshot of the weights (fixed per stream) are not counted
-    return {p: (float(np.median(wall[p])), float(np.median(cpu[p])),
-                tensor_bytes(streams[p], exclude=(model, streams[p].weights))) for p in positions}
+    return {p: (float(np.median(wall[p])), float(np.median(cpu[p])), streams[p].state_bytes()) for p in positions}
 
 
 def best_over_threads(run, threads: int) -> tuple[float, int]:

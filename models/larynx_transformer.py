@@ -580,7 +580,7 @@ class LarynxTransformer(nn.Module):
 
 
 def _affine(weight: Tensor, bias: Tensor, norm: nn.LayerNorm | None = None) -> tuple[Tensor, Tensor]:
-    """``(bias, weight.T)`` of y = x W^T + b, for ``torch.addmm(*pair...)``: ``addmm(bias, x, weight_t)``.
+    """``(bias, weight_t)`` of y = x W^T + b, computed as ``torch.addmm(bias, x, weight_t)``.
 
     With ``norm``, the LayerNorm before the product is folded in: W (g * n + beta) + b = (W g) n + (W beta + b)
     for the normalised n, so the norm runs without its affine part (:func:`_normalise`).
@@ -703,6 +703,11 @@ class LarynxStream:
         # normalised tau of the last frame (0 = tau_mean)
         self.previous = torch.zeros(batch_size, 1, dtype=dtype, device=device)
         self.position = 0
+
+    def state_bytes(self) -> int:
+        """Bytes of the tensors the stream carries from frame to frame: all it holds but its model and its
+        snapshot of the weights (both fixed for the stream's life)."""
+        return tensor_bytes(self, exclude=(self.model, self.weights))
 
     @torch.inference_mode()
     def encode(self, psi: Tensor) -> list[EncodedFrame]:

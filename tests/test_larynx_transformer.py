@@ -132,8 +132,7 @@ def long_stream():
     """10,000 frames through step(); the last 300 timed alternately with a stream at frames 200-500.
 
     Alternating the two streams step by step exposes both to the same load from other processes.
-    ``sizes``: bytes of every tensor reachable from each stream (its model and weights excluded) at frames 200
-    and 10,000.
+    ``sizes``: each stream's ``state_bytes()`` at frames 200 and 10,000.
     """
     model = random_model()
     psi = torch.rand(10_000, 55, generator=torch.Generator().manual_seed(4))
@@ -141,7 +140,7 @@ def long_stream():
     tau = [far.step(psi[t]) for t in range(9_700)]
     for t in range(200):
         near.step(psi[t])
-    sizes = [tensor_bytes(near, exclude=(model, near.weights))]
+    sizes = [near.state_bytes()]
     near_seconds, far_seconds = [], []
     for t in range(300):
         start = time.perf_counter()
@@ -150,7 +149,7 @@ def long_stream():
         tau.append(far.step(psi[9_700 + t]))
         far_seconds.append(time.perf_counter() - middle)
         near_seconds.append(middle - start)
-    sizes.append(tensor_bytes(far, exclude=(model, far.weights)))
+    sizes.append(far.state_bytes())
     return model, psi, torch.cat(tau), np.array(near_seconds), np.array(far_seconds), sizes
 
 
