@@ -29,7 +29,9 @@ count with the subject as an input, trained on the same batches (same crops and 
 the same validation-based early stopping.
 
 Prints per family the held-out tau RMSE (UV units) of each method, mean and standard deviation over
-seeds, and the transformer's ratio to ridge and to the GRU.  The CPU may be shared: each run is
+seeds, and the transformer's ratio to ridge and to the GRU; then where the error lies: each method's RMSE on
+the frames inside the held-out people's swallows and on the rest (the families know their swallows:
+:func:`swallow_frames`).  The CPU may be shared: each run is
 sized to a few minutes on one thread; everything is logged as it goes.
 """
 from __future__ import annotations
@@ -255,6 +257,23 @@ def family_tau(family: str, psi: np.ndarray, subject: int, seed: int, noise_seed
     return (tau + TRACKER_NOISE * rng.standard_normal(len(tau))).astype(np.float32)
 
 
+def swallow_frames(family: str, psi: np.ndarray, subject: int, seed: int) -> np.ndarray:
+    """bool [T]: the frames where ``subject``'s swallows move tau (their part of tau, the family with the
+    person's swallow amplitude set to 0 subtracted, exceeds 1e-4 UV units)."""
+    p = person(family, subject, seed, terms=5)
+    quiet = Person(p.gain, 0.0, p.lag, p.tau_a, p.mix)
+    psi = psi.astype(np.float64)
+    return np.abs(FAMILIES[family](psi, p) - FAMILIES[family](psi, quiet)) > 1e-4
+
+
+def split_rmse(predictions: list[np.ndarray], sequences: list[LarynxSequence], masks: list[np.ndarray]
+               ) -> tuple[float, float]:
+    """RMSE over the frames inside the masks and over those outside (UV units)."""
+    errors = np.concatenate([p - s.tau for p, s in zip(predictions, sequences)]).astype(np.float64)
+    inside = np.concatenate(masks)
+    return float(np.sqrt(np.mean(errors[inside] ** 2))), float(np.sqrt(np.mean(errors[~inside] ** 2)))
+
+
 # --------------------------------------------------------------------------- the pairs of one run
 
 
@@ -419,10 +438,10 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     gru_seconds = time.perf_counter() - started
     index = {name: i + 1 for i, name in enumerate(task.subjects)} if gru else {}
     gru_predictions = predict_gru(gru_model, heldout, index) if gru else [np.full(len(s), np.nan) for s in heldout]
+    means = [np.full(len(s), mean) for s in heldout]
     result = {
         "transformer": rmse(transformer, heldout), "transformer_average_style": rmse(average_style, heldout),
-        "ridge": rmse(ridge, heldout), "gru": rmse(gru_predictions, heldout),
-        "mean": rmse([np.full(len(s), mean) for s in heldout], heldout),
+        "ridge": rmse(ridge, heldout), "gru": rmse(gru_predictions, heldout), "mean": rmse(means, heldout),
         "train_frames": float(sum(len(s) for s in task.train)), "val_frames": float(sum(len(s) for s in task.val)),
         "heldout_frames": float(sum(len(s) for s in heldout)), "steps": float(task.total_steps),
         "best_step": float(evaluation.get("best_step", task.total_steps)), "ridge_lambda": lam,
@@ -430,6 +449,12 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
         "gru_parameters": float(parameter_count(gru_model)), "transformer_seconds": transformer_seconds,
         "gru_seconds": gru_seconds,
     }
+    # Where the error lies: inside the held-out people's swallows and outside them.
+    masks = [swallow_frames(family, s.psi, int(s.subject[1:]), seed) for s in heldout]
+    result["swallow_fraction"] = float(np.concatenate(masks).mean())
+    for method, predictions in (("transformer", transformer), ("ridge", ridge), ("gru", gru_predictions),
+                                ("mean", means)):
+        result[f"{method}_in_swallows"], result[f"{method}_outside"] = split_rmse(predictions, heldout, masks)
     log(f"  {family} seed {seed} (held out {heldout_name(list(recordings), seed, holdout)}): "
         + ", ".join(f"{k} {v:.5g}" for k, v in result.items()))
     return result
@@ -447,6 +472,18 @@ def summarise(results: dict[str, list[dict[str, float]]]) -> str:
         to_ridge, to_gru = tf / np.array([r["ridge"] for r in runs]), tf / np.array([r["gru"] for r in runs])
         lines.append(f"{family:<12}" + "".join(cells) + f"{to_ridge.mean():>9.3f} +-{to_ridge.std():.2f}"
                      + f"{to_gru.mean():>9.3f} +-{to_gru.std():.2f}")
+    lines.append("\nthe same, inside the held-out people's swallows | outside them (mean over seeds):")
+    lines.append(f"{'family':<12}{'swallow frames':>16}" + "".join(f"{m:>24}" for m in ("transformer", "gru", "ridge",
+                                                                                        "mean")))
+    for family, runs in results.items():
+        if not all("swallow_fraction" in r for r in runs):
+            continue
+        cells = []
+        for m in ("transformer", "gru", "ridge", "mean"):
+            inside, outside = (np.mean([r[f"{m}_{part}"] for r in runs]) for part in ("in_swallows", "outside"))
+            cells.append(f"{inside:.5f} | {outside:.5f}".rjust(24))
+        share = f"{np.mean([r['swallow_fraction'] for r in runs]):.0%}"
+        lines.append(f"{family:<12}{share:>16}" + "".join(cells))
     return "\n".join(lines)
 
 
