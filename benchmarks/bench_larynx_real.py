@@ -37,6 +37,7 @@ sized to a few minutes on one thread; everything is logged as it goes.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -261,9 +262,8 @@ def swallow_frames(family: str, psi: np.ndarray, subject: int, seed: int) -> np.
     """bool [T]: the frames where ``subject``'s swallows move tau (their part of tau, the family with the
     person's swallow amplitude set to 0 subtracted, exceeds 1e-4 UV units)."""
     p = person(family, subject, seed, terms=5)
-    quiet = Person(p.gain, 0.0, p.lag, p.tau_a, p.mix)
     psi = psi.astype(np.float64)
-    return np.abs(FAMILIES[family](psi, p) - FAMILIES[family](psi, quiet)) > 1e-4
+    return np.abs(FAMILIES[family](psi, p) - FAMILIES[family](psi, dataclasses.replace(p, swallow=0.0))) > 1e-4
 
 
 def split_rmse(predictions: list[np.ndarray], sequences: list[LarynxSequence], masks: list[np.ndarray]
@@ -476,8 +476,6 @@ def summarise(results: dict[str, list[dict[str, float]]]) -> str:
     lines.append(f"{'family':<12}{'swallow frames':>16}" + "".join(f"{m:>24}" for m in ("transformer", "gru", "ridge",
                                                                                         "mean")))
     for family, runs in results.items():
-        if not all("swallow_fraction" in r for r in runs):
-            continue
         cells = []
         for m in ("transformer", "gru", "ridge", "mean"):
             inside, outside = (np.mean([r[f"{m}_{part}"] for r in runs]) for part in ("in_swallows", "outside"))
