@@ -497,10 +497,10 @@ def main() -> None:
     parser.add_argument("--no-gru", action="store_true", help="skip the GRU baseline (experiments)")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    families = list(FAMILIES) if args.families == "all" else args.families.split(",")
+    recordings = load_recordings()  # first: a missing recording stops the run before anything is written
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    families = list(FAMILIES) if args.families == "all" else args.families.split(",")
-    recordings = load_recordings()
     log_file = open(out / "log.txt", "a")
 
     def log(text: str) -> None:
