@@ -498,6 +498,9 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     families = list(FAMILIES) if args.families == "all" else args.families.split(",")
+    unknown = [f for f in families if f not in FAMILIES]
+    if unknown:
+        parser.error(f"--families: unknown {', '.join(unknown)}; expected all or some of {', '.join(FAMILIES)}")
     recordings = load_recordings()  # first: a missing recording stops the run before anything is written
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
