@@ -836,6 +836,35 @@ def build_model(model_config: dict) -> LarynxTransformer:
                                               float(data["tau_mean"]), float(data["tau_scale"])))
 
 
+# The per-subject tables: one row per training subject after row 0, the average person.
+STYLE_TABLES = ("style.weight", "style_gain.weight")
+
+
+def transfer_weights(model: LarynxTransformer, source: dict[str, Tensor]) -> None:
+    """Start ``model`` from another run's weights ``source`` (a state dict of the same sizes).
+
+    Every tensor is copied except the per-subject tables (:data:`STYLE_TABLES`), whose subjects differ
+    between data sets: there each of ``model``'s rows, the average person's included, starts from the
+    source's average person (row 0).  The tau normalisation is not in the weights: the head predicts
+    normalised tau, and ``model`` keeps its own data's ``tau_mean`` and ``tau_scale``.
+
+    Raises:
+        ValueError: a tensor missing from ``source`` or of another shape (other sizes), naming it.
+    """
+    target = model.state_dict()
+    missing = [k for k in target if k not in source]
+    other = [f"{k} {tuple(source[k].shape)} (expected {tuple(v.shape)})" for k, v in target.items()
+             if k in source and k not in STYLE_TABLES and source[k].shape != v.shape]
+    if missing or other:
+        raise ValueError("the weights are of another model layout: " + "; ".join(
+            ([f"missing {', '.join(missing)}"] if missing else []) + ([f"other sizes: {', '.join(other)}"]
+                                                                     if other else [])))
+    merged = {k: source[k].to(v.dtype) for k, v in target.items()}
+    for name in STYLE_TABLES:
+        merged[name] = source[name][:1].to(target[name].dtype).expand_as(target[name]).clone()
+    model.load_state_dict(merged)
+
+
 def predict_tau(model: LarynxTransformer, psi: np.ndarray, subject: str | None = None,
                 eta: float | None = None) -> np.ndarray:
     """The larynx slide of one recording, streamed (as live decoding would produce it).

@@ -32,6 +32,11 @@ Length of training: with ``trainer.max_steps`` null the task chooses it from the
 ``[task.min_steps, task.max_steps]``); validation (``evaluate``) returns ``val_loss``, the streamed
 validation RMSE, for early stopping and best-checkpoint selection.
 
+Starting point: random weights, or with ``task.init_from`` another run's (``pretrained``: the shipped model,
+trained on ``data=synthetic``; or a checkpoint path), all but the per-subject styles, which start at that
+model's average person (:func:`warm_start`).  Off by default: on the real-regime benchmark it helped two
+generator families of four and hurt one (benchmarks/README.md, "Expression -> larynx").
+
 Evaluation: autoregressive (streamed) tau RMSE on the validation sequences, beside two baselines
 fitted on the training data: ridge regression on a causal window of ``ridge_window`` seconds of
 psi (closed form, lambda chosen by cross-validation over the training takes or subjects) and the
@@ -50,7 +55,9 @@ from data.cli import REQUIRED, register_config, to_dataclass
 from data.errors import InputError
 from data.pairs import LarynxSequence, load_pairs, split_by_take
 from data.synthetic_larynx import heldout_ranges, make_dataset, make_sequence, split_subjects
-from models.larynx_transformer import LarynxTransformerConfig, build_model  # noqa: F401  (task protocol)
+from models.checkpoint import load_checkpoint
+from models.larynx_transformer import SIZES, LarynxTransformerConfig, build_model, transfer_weights  # noqa: F401 (build_model: task protocol)
+from models.pretrained import default_checkpoint
 
 # --------------------------------------------------------------------------- configs
 
@@ -96,6 +103,9 @@ class LarynxTaskConfig:
     eval_batch: int = 32          # validation sequences decoded together
     ridge_window: float = 1.0     # seconds of psi the ridge baseline sees
     ridge_lambdas: list[float] = field(default_factory=lambda: [0.01, 0.1, 1.0, 10.0, 100.0, 1000.0, 1e4, 1e5])
+    # Weights to start from instead of a random initialisation: a larynx_transformer checkpoint of the same
+    # model sizes, or "pretrained" for the shipped model (trained on data=synthetic); see warm_start.
+    init_from: str | None = None
 
 
 @dataclass
@@ -254,6 +264,35 @@ def rmse(predictions: list[np.ndarray], sequences: list[LarynxSequence]) -> floa
     return float(np.sqrt(np.mean(errors.astype(np.float64) ** 2)))
 
 
+# --------------------------------------------------------------------------- warm start
+
+
+def warm_start(model, init_from: str, fps: float) -> None:
+    """Start ``model`` from the weights of ``init_from`` (``task.init_from``): a checkpoint path, or
+    ``pretrained`` for the shipped model.  The per-subject styles start from that model's average person
+    (:func:`models.larynx_transformer.transfer_weights`).  InputError for a checkpoint of another task or
+    of other model sizes; a note when it was trained at another frame rate (its filters are in frames)."""
+    path = default_checkpoint("larynx_transformer") if init_from == "pretrained" else init_from
+    try:
+        state = load_checkpoint(path)
+    except InputError as e:
+        raise InputError(f"task.init_from={init_from}: {e}") from None
+    if state["task"] != "larynx_transformer":
+        raise InputError(f"task.init_from={init_from}: {path} is a checkpoint of task '{state['task']}', "
+                         f"expected larynx_transformer")
+    try:
+        transfer_weights(model, state["model"])
+    except ValueError as e:
+        sizes = state["model_config"]
+        differ = [f"model.{k}={sizes[k]}" for k in SIZES if k in sizes and sizes[k] != model.config[k]]
+        hint = f"; it was trained with {', '.join(differ)}" if differ else ""
+        raise InputError(f"task.init_from={init_from}: {path} does not fit this model: {e}{hint}") from None
+    source_fps = float(state["model_config"].get("fps", fps))
+    if source_fps != fps:
+        print(f"larynx_transformer: task.init_from={init_from} was trained at {source_fps:g} fps, these data are "
+              f"at {fps:g} fps: its filters, counted in frames, start at {source_fps / fps:.2f} times its durations")
+
+
 # --------------------------------------------------------------------------- task
 
 
@@ -280,6 +319,8 @@ class Task:
             "subjects": self.subjects, "tau_mean": self.tau_mean, "tau_scale": float(max(all_tau.std(), 1e-6)),
         }
         self.model = build_model(self._model_config)
+        if self.settings.init_from:
+            warm_start(self.model, self.settings.init_from, self.fps)
 
         # Training crops are gathered (and interpolated, see batch) from one concatenated array.
         self.psi = torch.from_numpy(np.concatenate([s.psi for s in self.train]))

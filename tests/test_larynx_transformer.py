@@ -566,6 +566,83 @@ def test_sequences_shorter_than_a_crop_are_reported_and_left_out(tmp_path, capsy
                           "model.window=240"], data=[]))
 
 
+def perturbed(model):
+    """``model`` with random weights everywhere (style rows included), so a copied tensor is recognisable."""
+    torch.manual_seed(5)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.2 * torch.randn_like(p))
+    return model.eval()
+
+
+def test_warm_start_copies_the_network_and_starts_every_person_at_the_average(tmp_path):
+    """task.init_from: all weights from the checkpoint; its people are others, so each style row (the average's
+    included) starts from its average person; tau normalisation stays this data's.  The streamed output, in
+    normalised units, is then the checkpoint's average person's."""
+    plain = linear_pair_task(tmp_path, [])
+    source_config = {**plain.model_config(), "subjects": ["p", "q", "r"], "tau_mean": 0.2, "tau_scale": 0.05}
+    source = perturbed(build_model(source_config))
+    path = tmp_path / "source.pt"
+    save_checkpoint(path, {"task": "larynx_transformer", "model_config": source_config,
+                           "model": source.state_dict(), "step": 7})
+    task = linear_pair_task(tmp_path, [f"task.init_from={path}"])
+    model = task.model.eval()
+    assert model.subjects == ["anna"] and float(model.tau_mean) != pytest.approx(0.2)
+    for name, value in model.state_dict().items():
+        expected = source.state_dict()[name]
+        if name in ("style.weight", "style_gain.weight"):
+            expected = expected[:1].expand_as(value)
+        assert torch.equal(value, expected), name
+    psi = torch.from_numpy(task.val[0].psi)[None]
+    ours = (model.generate(psi, torch.tensor([1])) - model.tau_mean) / model.tau_scale
+    theirs = (source.generate(psi, torch.tensor([0])) - source.tau_mean) / source.tau_scale
+    torch.testing.assert_close(ours, theirs, atol=1e-5, rtol=1e-4)
+    # A plain run starts elsewhere: random init with zero styles.
+    assert not torch.equal(plain.model.head.weight, source.head.weight)
+
+
+def test_warm_start_from_another_frame_rate_says_so(tmp_path, capsys):
+    plain = linear_pair_task(tmp_path, [])
+    faster = {**plain.model_config(), "fps": 60.0}
+    save_checkpoint(tmp_path / "fast.pt", {"task": "larynx_transformer", "model_config": faster,
+                                           "model": build_model(faster).state_dict()})
+    capsys.readouterr()
+    linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'fast.pt'}"])
+    assert "was trained at 60 fps, these data are at 30 fps: its filters, counted in frames, start at 2.00 times " \
+           "its durations" in capsys.readouterr().out
+
+
+def test_warm_start_refuses_what_does_not_fit(tmp_path):
+    plain = linear_pair_task(tmp_path, [])
+    wider = {**plain.model_config(), "d_ff": 48}
+    save_checkpoint(tmp_path / "wider.pt", {"task": "larynx_transformer", "model_config": wider,
+                                            "model": build_model(wider).state_dict()})
+    with pytest.raises(InputError, match=r"wider.pt does not fit this model: .*blocks.0.mlp.0.weight \(48, 32\) "
+                                         r"\(expected \(64, 32\)\).*it was trained with model.d_ff=48"):
+        linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'wider.pt'}"])
+    save_checkpoint(tmp_path / "h2n.pt", {"task": "head2neck", "model_config": {}, "model": {}})
+    with pytest.raises(InputError, match="h2n.pt is a checkpoint of task 'head2neck', expected larynx_transformer"):
+        linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'h2n.pt'}"])
+    with pytest.raises(InputError, match="task.init_from=.*nowhere.pt: checkpoint not found"):
+        linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'nowhere.pt'}"])
+
+
+def test_the_shipped_model_fits_the_default_sizes(tmp_path):
+    """task.init_from=pretrained starts from models/pretrained/larynx_transformer.pt: it must keep fitting the
+    default model config (a change of the defaults needs the shipped model retrained)."""
+    from data.cli import compose_config
+    from models.pretrained import load_default
+    from tasks.larynx_transformer import Task
+
+    linear_pair_task(tmp_path, [])  # writes the pairs folder
+    cfg = compose_config("train", ["task=larynx_transformer", "data=pairs", f"data.path={tmp_path / 'linear'}",
+                                   "task.init_from=pretrained"])
+    task = Task(cfg)
+    shipped, _ = load_default("larynx_transformer")
+    assert torch.equal(task.model.head.weight, shipped.head.weight)
+    assert torch.equal(task.model.style.weight[1], shipped.style.weight[0])
+
+
 # --------------------------------------------------------------------------- inference CLI
 
 
