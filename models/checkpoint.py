@@ -30,7 +30,8 @@ def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
         torch.save(state, tmp)
 
 
-def load_checkpoint(path: str | os.PathLike) -> dict:
+def load_checkpoint(path: str | os.PathLike, task: str | None = None) -> dict:
+    """The checkpoint dict at ``path`` (InputError naming it when it is not one, or not of ``task``)."""
     path = require_file(path, "checkpoint")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -41,14 +42,14 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     for key in ("task", "model_config", "model"):
         if key not in state:
             raise InputError(f"{path}: checkpoint has no '{key}' entry; expected one written by train.py")
+    if task is not None and state["task"] != task:
+        raise InputError(f"{path}: checkpoint of task '{state['task']}', expected '{task}'")
     return state
 
 
 def load_model(path: str | os.PathLike, task: str | None = None) -> tuple[nn.Module, dict]:
     """Rebuild a trained model from a checkpoint; returns (model in eval mode, checkpoint dict)."""
-    state = load_checkpoint(path)
-    if task is not None and state["task"] != task:
-        raise InputError(f"{path}: checkpoint of task '{state['task']}', expected '{task}'")
+    state = load_checkpoint(path, task)
     if state["task"] not in MODEL_BUILDERS:
         raise InputError(f"{path}: checkpoint of unknown task '{state['task']}', expected one of "
                          f"{', '.join(MODEL_BUILDERS)}")

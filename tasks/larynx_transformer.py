@@ -56,7 +56,7 @@ from data.errors import InputError
 from data.pairs import LarynxSequence, load_pairs, split_by_take
 from data.synthetic_larynx import heldout_ranges, make_dataset, make_sequence, split_subjects
 from models.checkpoint import load_checkpoint
-from models.larynx_transformer import SIZES, LarynxTransformerConfig, build_model, transfer_weights  # noqa: F401 (build_model: task protocol)
+from models.larynx_transformer import SIZES, LarynxTransformerConfig, build_model, transfer_weights
 from models.pretrained import default_checkpoint
 
 # --------------------------------------------------------------------------- configs
@@ -267,19 +267,16 @@ def rmse(predictions: list[np.ndarray], sequences: list[LarynxSequence]) -> floa
 # --------------------------------------------------------------------------- warm start
 
 
-def warm_start(model, init_from: str, fps: float) -> None:
+def warm_start(model, init_from: str) -> None:
     """Start ``model`` from the weights of ``init_from`` (``task.init_from``): a checkpoint path, or
     ``pretrained`` for the shipped model.  The per-subject styles start from that model's average person
     (:func:`models.larynx_transformer.transfer_weights`).  InputError for a checkpoint of another task or
     of other model sizes; a note when it was trained at another frame rate (its filters are in frames)."""
     path = default_checkpoint("larynx_transformer") if init_from == "pretrained" else init_from
     try:
-        state = load_checkpoint(path)
+        state = load_checkpoint(path, "larynx_transformer")
     except InputError as e:
         raise InputError(f"task.init_from={init_from}: {e}") from None
-    if state["task"] != "larynx_transformer":
-        raise InputError(f"task.init_from={init_from}: {path} is a checkpoint of task '{state['task']}', "
-                         f"expected larynx_transformer")
     try:
         transfer_weights(model, state["model"])
     except ValueError as e:
@@ -287,7 +284,7 @@ def warm_start(model, init_from: str, fps: float) -> None:
         differ = [f"model.{k}={sizes[k]}" for k in SIZES if k in sizes and sizes[k] != model.config[k]]
         hint = f"; it was trained with {', '.join(differ)}" if differ else ""
         raise InputError(f"task.init_from={init_from}: {path} does not fit this model: {e}{hint}") from None
-    source_fps = float(state["model_config"].get("fps", fps))
+    fps, source_fps = model.fps, float(state["model_config"].get("fps", model.fps))
     if source_fps != fps:
         print(f"larynx_transformer: task.init_from={init_from} was trained at {source_fps:g} fps, these data are "
               f"at {fps:g} fps: its filters, counted in frames, start at {source_fps / fps:.2f} times its durations")
@@ -320,7 +317,7 @@ class Task:
         }
         self.model = build_model(self._model_config)
         if self.settings.init_from:
-            warm_start(self.model, self.settings.init_from, self.fps)
+            warm_start(self.model, self.settings.init_from)
 
         # Training crops are gathered (and interpolated, see batch) from one concatenated array.
         self.psi = torch.from_numpy(np.concatenate([s.psi for s in self.train]))

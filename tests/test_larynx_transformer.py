@@ -621,7 +621,8 @@ def test_warm_start_refuses_what_does_not_fit(tmp_path):
                                          r"\(expected \(64, 32\)\).*it was trained with model.d_ff=48"):
         linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'wider.pt'}"])
     save_checkpoint(tmp_path / "h2n.pt", {"task": "head2neck", "model_config": {}, "model": {}})
-    with pytest.raises(InputError, match="h2n.pt is a checkpoint of task 'head2neck', expected larynx_transformer"):
+    with pytest.raises(InputError,
+                       match="task.init_from=.*h2n.pt: checkpoint of task 'head2neck', expected 'larynx_transformer'"):
         linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'h2n.pt'}"])
     with pytest.raises(InputError, match="task.init_from=.*nowhere.pt: checkpoint not found"):
         linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'nowhere.pt'}"])
