@@ -9,6 +9,7 @@ tensors: checkpoints are read with ``torch.load(weights_only=True)``, which runs
 from __future__ import annotations
 
 import os
+import pickle
 
 import torch
 from torch import nn
@@ -35,8 +36,13 @@ def load_checkpoint(path: str | os.PathLike, task: str | None = None) -> dict:
     path = require_file(path, "checkpoint")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises many types for a corrupt file
-        raise InputError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+    except pickle.UnpicklingError:  # torch's message advises weights_only=False, which would run pickled code
+        raise InputError(f"{path}: not a readable checkpoint: it is not a PyTorch file, or it holds objects other "
+                         f"than tensors and plain containers (checkpoints are read without running pickled code); "
+                         f"expected a .pt file written by train.py") from None
+    except Exception as e:  # torch raises many types for a corrupt file; its first sentence says which
+        reason = " ".join(str(e).split(". ")[0].split())
+        raise InputError(f"{path}: not a readable checkpoint ({type(e).__name__}: {reason})") from None
     if not isinstance(state, dict):
         raise InputError(f"{path}: holds a {type(state).__name__}, expected a checkpoint dict written by train.py")
     for key in ("task", "model_config", "model"):

@@ -624,6 +624,10 @@ def test_warm_start_refuses_what_does_not_fit(tmp_path):
     with pytest.raises(InputError,
                        match="task.init_from=.*h2n.pt: checkpoint of task 'head2neck', expected 'larynx_transformer'"):
         linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'h2n.pt'}"])
+    (tmp_path / "notes.pt").write_text("not a checkpoint\n")
+    with pytest.raises(InputError, match="task.init_from=.*notes.pt: not a readable checkpoint: it is not a PyTorch "
+                                         "file, or it holds objects other than tensors"):
+        linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'notes.pt'}"])
     with pytest.raises(InputError, match="task.init_from=.*nowhere.pt: checkpoint not found"):
         linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'nowhere.pt'}"])
 
