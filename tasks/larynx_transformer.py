@@ -94,6 +94,10 @@ class LarynxTaskConfig:
     style_dropout: float = 0.25   # share of crops trained with the unknown-subject style (used for new subjects)
     input_noise: float = 0.1      # std of noise on the fed-back tau, in units of tau_scale
     velocity_weight: float = 0.5  # weight of the frame-difference MSE
+    # Weight of a group lasso on the expression projection: the sum over expression channels of the norm of
+    # each channel's input weights.  The larynx follows a few articulators; this drives the weights of the
+    # others to zero, so channels that only happen to co-vary with tau in few recordings are not used.
+    input_sparsity: float = 0.0
     scheduled_sampling: ScheduledSampling = field(default_factory=ScheduledSampling)
     augment: Augment = field(default_factory=Augment)
     # trainer.max_steps null: epochs passes over the training frames, within [min_steps, max_steps].
@@ -409,10 +413,11 @@ class Task:
         model = self.model
         psi, tau, subject = batch["psi"], batch["tau"], batch["subject"]
         eta = batch["eta"] if model.use_eta else None
+        sparsity = self.settings.input_sparsity * model.expression.project.weight.norm(dim=0).sum()
         if not model.feedback:  # nothing fed back: no teacher forcing, nothing to sample
             error = (model(psi, None, subject, eta) - tau) / model.tau_scale
             mse = error.pow(2).mean()
-            loss = mse + self.settings.velocity_weight * (error[:, 1:] - error[:, :-1]).pow(2).mean()
+            loss = mse + self.settings.velocity_weight * (error[:, 1:] - error[:, :-1]).pow(2).mean() + sparsity
             return loss, {"loss": loss.item(), "mse": mse.item()}
         teacher = model.shift(tau)
         previous = teacher
@@ -427,7 +432,7 @@ class Task:
         error = (model(psi, previous, subject, eta) - tau) / model.tau_scale
         mse = error.pow(2).mean()
         velocity = (error[:, 1:] - error[:, :-1]).pow(2).mean()
-        loss = mse + self.settings.velocity_weight * velocity
+        loss = mse + self.settings.velocity_weight * velocity + sparsity
         return loss, {"loss": loss.item(), "mse": mse.item(), "sampling": probability}
 
     # ------------------------------------------------------------------ evaluation

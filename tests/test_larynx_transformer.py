@@ -32,7 +32,7 @@ from data.synthetic_larynx import (
     subject_params,
 )
 from data.synthetic_tau import SWALLOW_LANDMARK_PHASES
-from models.checkpoint import save_checkpoint
+from models.checkpoint import load_model, save_checkpoint
 from models.larynx_transformer import build_model, predict_tau, tensor_bytes
 
 REPO = Path(__file__).resolve().parents[1]
@@ -680,3 +680,51 @@ def test_infer_cli_streams_the_checkpoint(tmp_path):
                              capture_output=True, text=True, timeout=300)
     assert unknown.returncode == 2 and "subject 'zoe' was not in the training data" in unknown.stderr
     assert not (tmp_path / "zoe").exists()
+
+
+def shifted_channel_pairs(folder: Path, takes: int, frames: int, seed: int, other_level: float) -> list:
+    """Pairs whose tau follows two channels (a lagged, low-passed 0.03 * jawOpen - 0.02 * mouthSmile_L) while the
+    other 53 move at random around ``other_level``: another capture (another tracker, another face) moves those
+    channels elsewhere and the larynx does not care."""
+    from scipy.signal import lfilter
+
+    from data.pairs import LarynxSequence
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for take in range(takes):
+        walk = np.cumsum(rng.standard_normal((frames, 55)), axis=0) / 12
+        psi = np.clip(other_level + 0.15 * np.sin(walk), 0, 1)
+        psi[:, K["jawOpen"]] = 0.35 + 0.3 * np.sin(walk[:, K["jawOpen"]] * 2)
+        psi[:, K["mouthSmile_L"]] = 0.3 + 0.25 * np.sin(walk[:, K["mouthSmile_L"]] * 2)
+        drive = 0.03 * psi[:, K["jawOpen"]] - 0.02 * psi[:, K["mouthSmile_L"]]
+        tau = lfilter([0.2], [1, -0.8], np.concatenate([np.repeat(drive[:1], 4), drive])[:frames])
+        sequence = LarynxSequence(psi.astype(np.float32), tau.astype(np.float32), 30.0, "anna", f"t{seed}_{take}")
+        if folder is not None:
+            save_pair(folder / f"{sequence.name}.npz", sequence)
+        out.append(sequence)
+    return out
+
+
+def test_input_sparsity_keeps_the_channels_tau_follows(tmp_path):
+    """task.input_sparsity: trained on pairs where tau follows two channels, the group lasso shrinks the other 53
+    channels' input weights to under half of an unpenalised run's, and on takes where those channels sit elsewhere
+    (a generator shifted in what the larynx ignores) the error is under half of that run's."""
+    from tasks.larynx_transformer import rmse
+
+    shifted_channel_pairs(tmp_path / "pairs", 4, 400, seed=1, other_level=0.2)
+    heldout = shifted_channel_pairs(None, 2, 400, seed=2, other_level=0.7)
+    results = {}
+    for weight in (0.0, 0.03):
+        cfg = tiny_config(["data=pairs", f"data.path={tmp_path / 'pairs'}", "data.val_fraction=0.25", "task.crop=64",
+                           "model.window=16", "trainer.max_steps=250", f"task.input_sparsity={weight}",
+                           "model.dropout=0"], data=[])
+        fit(cfg, tmp_path / f"run{weight}")
+        model = load_model(tmp_path / f"run{weight}" / "checkpoints" / "last.pt", "larynx_transformer")[0]
+        norms = model.expression.project.weight.detach().norm(dim=0)
+        followed = torch.zeros(55, dtype=torch.bool)
+        followed[[K["jawOpen"], K["mouthSmile_L"]]] = True
+        results[weight] = (float(norms[~followed].median()), float(norms[followed].min()),
+                           rmse([predict_tau(model, s.psi, "anna") for s in heldout], heldout))
+    assert results[0.03][0] < 0.5 * results[0.0][0], results  # the 53 channels tau does not follow
+    assert results[0.03][2] < 0.5 * results[0.0][2], results
