@@ -11,7 +11,9 @@ Data (``cfg.data``, hydra group ``data``; every sequence is resampled to ``data.
   and validation **by take** (``data.pairs.take_of``: the files' ``take``, else the file name
   without a trailing clip number), so clips of one recording never sit on both sides.
 
-Training: random crops of ``task.crop`` frames.
+Training: random crops of ``task.crop`` frames.  Besides AdamW's weight decay and dropout, a group lasso on the
+expression projection (``task.input_sparsity``) shrinks the input weights of the expression channels tau does
+not follow: with a few recordings many channels co-vary with tau by chance, and a new take moves them elsewhere.
 ``task.augment`` can alter crops in ways that keep psi and tau a pair: a time warp applied to both (a
 rate per crop times a slow sinusoidal modulation), a gain and an offset per expression channel of psi,
 whole channels dropped.  All are off by default: on the real-regime benchmark each made the held-out
