@@ -92,6 +92,10 @@ class LarynxTransformerConfig:
     # adds no information, only drift on takes unlike the training ones (benchmarks/README.md).
     feedback: bool = False
     use_eta: bool = False      # feed the larynx size eta to the motion encoder
+    # Levels of each expression weight where the input layer may bend (:func:`hinge_features`): the larynx
+    # answers some poses past a level (a jaw that is shut, lips pressed), and a hinge per level lets the
+    # first product express that per channel.  [] = psi enters linearly.
+    input_knots: list[float] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         if self.d_model % self.n_heads or (self.d_model // self.n_heads) % 2:
@@ -124,6 +128,15 @@ register_config("larynx_transformer_schema", LarynxTransformerConfig, group="mod
 
 SIZES = tuple(f.name for f in dataclasses.fields(LarynxTransformerConfig))
 DATA_KEYS = tuple(f.name for f in dataclasses.fields(LarynxDataFields))
+
+
+def hinge_features(psi: Tensor, knots: Tensor) -> Tensor:
+    """psi [...,C] and knots [K] -> [...,C*(K+1)]: per channel c, psi_c then relu(psi_c - knot_k) for each knot
+    (channel-major: the K+1 features of channel c are columns c*(K+1) ... c*(K+1)+K)."""
+    if not len(knots):
+        return psi
+    bends = torch.relu(psi[..., None] - knots)
+    return torch.cat([psi[..., None], bends], dim=-1).flatten(-2)
 
 
 def alibi_slopes(n_heads: int) -> Tensor:
@@ -385,7 +398,8 @@ class ExpressionEncoder(nn.Module):
     def __init__(self, cfg: LarynxTransformerConfig):
         super().__init__()
         d = cfg.d_model
-        self.project = nn.Linear(NUM_EXPRESSIONS, d)
+        self.register_buffer("knots", torch.tensor([float(k) for k in cfg.input_knots]), persistent=False)
+        self.project = nn.Linear(NUM_EXPRESSIONS * (len(cfg.input_knots) + 1), d)
         self.temporal = nn.ModuleList(CausalConv(d, cfg.expression_kernel, int(dilation))
                                       for dilation in cfg.expression_dilations)
         self.recurrent = nn.GRU(d, d, batch_first=True) if cfg.recurrent else None
@@ -404,7 +418,7 @@ class ExpressionEncoder(nn.Module):
 
         Returns (features [B,T,d], the state after these frames).
         """
-        x = self.project(psi)
+        x = self.project(hinge_features(psi, self.knots))
         conv_history = []
         for i, conv in enumerate(self.temporal):
             y, after = conv(x, None if state is None else state.conv[i])
@@ -617,7 +631,7 @@ class FrameWeights:
     def __init__(self, model: LarynxTransformer):
         encoder = model.expression
         with torch.no_grad():
-            self.project = _linear(encoder.project)
+            self.knots, self.project = encoder.knots, _linear(encoder.project)
             # Conv1d weight [C_out,C_in,kernel] -> [C_out, kernel*C_in], matching taps [B,kernel,C_in] flattened
             self.convs = [(conv.dilation, *_affine(conv.conv.weight.permute(0, 2, 1).flatten(1), conv.conv.bias))
                           for conv in encoder.temporal]
@@ -723,7 +737,7 @@ class LarynxStream:
         """The expression side of one frame psi_t [B,55] that continues the stream: what :meth:`encode` gives
         for a single frame, computed from :attr:`weights` (ExpressionEncoder.forward step by step)."""
         weights, state = self.weights, self.expression_state
-        x = torch.addmm(weights.project[0], psi_t, weights.project[1])
+        x = torch.addmm(weights.project[0], hinge_features(psi_t, weights.knots), weights.project[1])
         conv_history = []
         for (dilation, bias, kernel), history in zip(weights.convs, state.conv):
             joined = torch.cat([history, x[:, None]], dim=1)  # [B,history+1,d]
@@ -823,6 +837,7 @@ def build_model(model_config: dict) -> LarynxTransformer:
     """The model of a checkpoint's ``model_config``: exactly the fields of :class:`LarynxTransformerConfig`
     (the sizes) and of :class:`LarynxDataFields` (from the training data); missing or unknown keys, or
     sizes the config rejects, are a ValueError."""
+    model_config = {"input_knots": [], **model_config}  # checkpoints from before the hinges
     missing = [k for k in SIZES + DATA_KEYS if k not in model_config]
     unknown = sorted(set(model_config) - set(SIZES) - set(DATA_KEYS))
     if missing or unknown:
@@ -830,6 +845,7 @@ def build_model(model_config: dict) -> LarynxTransformer:
                          f"{list(SIZES)} (LarynxTransformerConfig) and the data's {list(DATA_KEYS)}")
     sizes = {k: model_config[k] for k in SIZES}
     sizes["expression_dilations"] = [int(d) for d in sizes["expression_dilations"]]
+    sizes["input_knots"] = [float(k) for k in sizes["input_knots"]]
     data = {k: model_config[k] for k in DATA_KEYS}
     return LarynxTransformer(LarynxTransformerConfig(**sizes),
                              LarynxDataFields(float(data["fps"]), [str(s) for s in data["subjects"]],

@@ -55,6 +55,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from data.cli import REQUIRED, register_config, to_dataclass
 from data.errors import InputError
+from data.expressions import NUM_EXPRESSIONS
 from data.pairs import LarynxSequence, load_pairs, split_by_take
 from data.synthetic_larynx import heldout_ranges, make_dataset, make_sequence, split_subjects
 from models.checkpoint import load_checkpoint
@@ -417,7 +418,8 @@ class Task:
         model = self.model
         psi, tau, subject = batch["psi"], batch["tau"], batch["subject"]
         eta = batch["eta"] if model.use_eta else None
-        sparsity = self.settings.input_sparsity * model.expression.project.weight.norm(dim=0).sum()
+        sparsity = self.settings.input_sparsity * model.expression.project.weight.view(
+            model.expression.project.out_features, NUM_EXPRESSIONS, -1).norm(dim=(0, 2)).sum()
         if not model.feedback:  # nothing fed back: no teacher forcing, nothing to sample
             error = (model(psi, None, subject, eta) - tau) / model.tau_scale
             mse = error.pow(2).mean()

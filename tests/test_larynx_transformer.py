@@ -33,7 +33,7 @@ from data.synthetic_larynx import (
 )
 from data.synthetic_tau import SWALLOW_LANDMARK_PHASES
 from models.checkpoint import load_model, save_checkpoint
-from models.larynx_transformer import build_model, predict_tau, tensor_bytes
+from models.larynx_transformer import build_model, hinge_features, predict_tau, tensor_bytes
 
 REPO = Path(__file__).resolve().parents[1]
 K = {name: k for k, name in enumerate(EXPRESSION_NAMES)}
@@ -67,9 +67,11 @@ def random_model(**overrides):
 # --------------------------------------------------------------------------- streaming decoder
 
 
-@pytest.mark.parametrize("cross_window, feedback", [(1, False), (3, False), (1, True), (3, True)])
-def test_cached_decoding_matches_full_recomputation(cross_window, feedback):
-    model = random_model(cross_window=cross_window, subjects=["anna", "ben"], use_eta=True, feedback=feedback)
+@pytest.mark.parametrize("cross_window, feedback, knots", [(1, False, []), (3, False, []), (1, True, []),
+                                                           (3, True, []), (1, False, [0.1, 0.4])])
+def test_cached_decoding_matches_full_recomputation(cross_window, feedback, knots):
+    model = random_model(cross_window=cross_window, subjects=["anna", "ben"], use_eta=True, feedback=feedback,
+                         input_knots=knots)
     psi = torch.rand(2, 70, 55, generator=torch.Generator().manual_seed(1))  # 70 frames: the 16-frame window wraps
     subject, eta = torch.tensor([0, 2]), torch.tensor([1.0, 1.15])
     reference = model.generate_uncached(psi, subject, eta) / model.tau_scale
@@ -100,6 +102,20 @@ def test_every_parameter_gets_a_gradient(cross_window, feedback, use_eta):
 
     dead = [name for name, p in model.named_parameters() if p.grad is None or not (rows(p).amax(1) > 0).all()]
     assert not dead, dead
+
+
+def test_hinge_features_bend_each_channel_at_its_knots():
+    psi = torch.tensor([[0.0, 0.3], [0.6, 0.05]])  # [2 frames, 2 channels]
+    features = hinge_features(psi, torch.tensor([0.1, 0.4]))
+    expected = torch.tensor([[0.0, 0.0, 0.0, 0.3, 0.2, 0.0],   # channel 0: psi, (psi-0.1)+, (psi-0.4)+; channel 1
+                             [0.6, 0.5, 0.2, 0.05, 0.0, 0.0]])
+    torch.testing.assert_close(features, expected)
+    assert hinge_features(psi, torch.tensor([])) is psi
+    model = random_model(input_knots=[0.1, 0.4])
+    assert model.expression.project.in_features == 55 * 3
+    # the group lasso of task.input_sparsity takes a channel's columns together: [d, channel, psi and its hinges]
+    grouped = model.expression.project.weight.view(model.cfg.d_model, 55, 3)
+    torch.testing.assert_close(grouped[:, 1], model.expression.project.weight[:, 3:6])
 
 
 def test_forward_is_causal():
