@@ -31,7 +31,8 @@ the same validation-based early stopping.
 Prints per family the held-out tau RMSE (UV units) of each method, mean and standard deviation over
 seeds, and the transformer's ratio to ridge and to the GRU; then where the error lies: each method's RMSE on
 the frames inside the held-out people's swallows and on the rest (the families know their swallows:
-:func:`swallow_frames`).  The CPU may be shared: each run is
+:func:`swallow_frames`); per run, ``<out>/<family>/seed<s>/heldout.png`` plots the held-out tau beside the
+predictions.  The CPU may be shared: each run is
 sized to a few minutes on one thread; everything is logged as it goes.
 """
 from __future__ import annotations
@@ -58,6 +59,7 @@ import train  # noqa: E402
 from data.cli import compose_config  # noqa: E402
 from data.expressions import EXPRESSION_NAMES, read_expressions  # noqa: E402
 from data.pairs import LarynxSequence, save_pair  # noqa: E402
+from data.plots import figure, save_figure  # noqa: E402
 from data.synthetic_tau import SwallowShape, swallow_profile  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
 from models.larynx_transformer import predict_tau  # noqa: E402
@@ -266,6 +268,29 @@ def swallow_frames(family: str, psi: np.ndarray, subject: int, seed: int) -> np.
     return np.abs(FAMILIES[family](psi, p) - FAMILIES[family](psi, dataclasses.replace(p, swallow=0.0))) > 1e-4
 
 
+def plot_heldout(path: Path, heldout: list[LarynxSequence], masks: list[np.ndarray],
+                 predictions: dict[str, list[np.ndarray]]) -> None:
+    """One panel per held-out person (tau, each method's prediction, the person's swallow frames shaded) and
+    one of the expression weights the families' cues read (jawOpen, eyeBlink), against seconds."""
+    fig, axes = figure(nrows=len(heldout) + 1, figsize=(16, 2.6 * (len(heldout) + 1)), sharex=True, squeeze=False)
+    seconds = np.arange(len(heldout[0])) / FPS
+    for k, (sequence, mask) in enumerate(zip(heldout, masks)):
+        ax = axes[k, 0]
+        ax.fill_between(seconds, sequence.tau.min(), sequence.tau.max(), where=mask, color="gold", alpha=0.3,
+                        label="swallow frames")
+        ax.plot(seconds, sequence.tau, "k", lw=0.8, label="tau")
+        for (method, series), colour in zip(predictions.items(), ("tab:red", "tab:blue", "tab:green")):
+            ax.plot(seconds, series[k], color=colour, lw=0.8, label=method)
+        ax.set_ylabel(f"{sequence.subject}: tau (UV)")
+    axes[0, 0].legend(loc="upper right", fontsize=8)
+    psi = heldout[0].psi
+    axes[-1, 0].plot(seconds, psi[:, K["jawOpen"]], label="jawOpen")
+    axes[-1, 0].plot(seconds, mean_lr(psi, "eyeBlink"), alpha=0.6, label="eyeBlink (L+R)/2")
+    axes[-1, 0].legend(loc="upper right", fontsize=8)
+    axes[-1, 0].set_xlabel(f"seconds ({heldout[0].take})")
+    save_figure(fig, path, dpi=70)
+
+
 def split_rmse(predictions: list[np.ndarray], sequences: list[LarynxSequence], masks: list[np.ndarray]
                ) -> tuple[float, float]:
     """RMSE over the frames inside the masks and over those outside (UV units)."""
@@ -452,6 +477,8 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     # Where the error lies: inside the held-out people's swallows and outside them.
     masks = [swallow_frames(family, s.psi, int(s.subject[1:]), seed) for s in heldout]
     result["swallow_fraction"] = float(np.concatenate(masks).mean())
+    plot_heldout(out / family / f"seed{seed}" / "heldout.png", heldout, masks,
+                 {"transformer": transformer, "ridge": ridge, **({"gru": gru_predictions} if gru else {})})
     for method, predictions in (("transformer", transformer), ("ridge", ridge), ("gru", gru_predictions),
                                 ("mean", means)):
         result[f"{method}_in_swallows"], result[f"{method}_outside"] = split_rmse(predictions, heldout, masks)
