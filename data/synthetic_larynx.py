@@ -21,8 +21,11 @@ psi[:t+1] only), nonlinear and subject dependent:
 - effort: a saturating rise with the articulation speed integrated over a second or more (phrases);
 - swallows: when the seal (the signature's mix of press, roll and closure, with the jaw closed)
   crosses a threshold, a swallow profile (``data.synthetic_tau.swallow_profile``, with the subject's
-  own landmark levels and duration) starts, its amplitude set by the chin raise at that moment; a
-  swallow in progress ignores further crossings.
+  own landmark levels and duration) starts, its amplitude set by the chin raise at that moment; for the
+  subject's refractory time after a swallow's onset (at least its duration) further crossings are ignored.
+  The face seals more often than the larynx swallows (a second seal follows some swallows within a few
+  seconds), so whether a seal is a swallow depends on how long ago the last one was: a timing rule that
+  needs seconds of memory, as swallows cued by the face in real captures do.
 Every factor is drawn per subject from the ranges of a :class:`GeneratorRanges`: the training
 subjects from :data:`TRAINING_RANGES`, held-out subjects from :func:`heldout_ranges` (longer lags,
 slower filters, gains and powers reaching outside the training ranges, other swallow shapes), so a
@@ -99,7 +102,9 @@ class GeneratorRanges:
     integration time of effort and ``effort_gain`` its size (tau); ``signature`` the range of each of the
     three seal weights (press, roll, closure) before normalisation; ``swallow_duration`` and
     ``swallow_amplitude`` factors of SWALLOW_DURATION / SWALLOW_AMPLITUDE; ``dip`` and ``undershoot``
-    the swallow's valley levels (fractions of its amplitude; the defaults' are -0.12 and -0.22).
+    the swallow's valley levels (fractions of its amplitude; the defaults' are -0.12 and -0.22);
+    ``swallow_refractory`` (s) the shortest time from one swallow's onset to the next (a modelling choice:
+    a seal within it is no swallow).
     """
 
     lag: Range = (0.03, 0.15)
@@ -115,6 +120,7 @@ class GeneratorRanges:
     swallow_amplitude: Range = (0.75, 1.25)
     dip: Range = (-0.2, -0.05)
     undershoot: Range = (-0.3, -0.1)
+    swallow_refractory: Range = (2.0, 5.0)
 
 
 TRAINING_RANGES = GeneratorRanges()
@@ -125,7 +131,8 @@ TRAINING_RANGES = GeneratorRanges()
 HELDOUT_RANGES = GeneratorRanges(
     lag=(0.1, 0.22), inertia=(0.08, 0.18), second_order=0.5, gain=(0.5, 2.0), jaw_power=(1.3, 1.9),
     saturation=(0.012, 0.022), effort_time=(1.6, 2.5), effort_gain=(0.006, 0.012), signature=(0.0, 1.0),
-    swallow_duration=(1.05, 1.3), swallow_amplitude=(0.6, 1.4), dip=(-0.08, 0.0), undershoot=(-0.4, -0.2))
+    swallow_duration=(1.05, 1.3), swallow_amplitude=(0.6, 1.4), dip=(-0.08, 0.0), undershoot=(-0.4, -0.2),
+    swallow_refractory=(3.0, 7.0))
 
 
 def heldout_ranges(shift: float = 1.0) -> GeneratorRanges:
@@ -151,7 +158,8 @@ class SubjectParams:
     articulation low-pass, gains of the articulation terms (tau per unit weight), ``jaw_power``,
     ``saturation`` (tau), ``effort_gain`` (tau) and ``effort_time`` (s), ``swallow_amplitude`` (tau),
     ``swallow_duration`` (s), ``swallow_levels`` [5] (landmark levels of the swallow, fractions of its
-    amplitude), ``eta`` (larynx size).
+    amplitude), ``eta`` (larynx size), ``swallow_refractory`` (s, from a swallow's onset to the earliest next
+    one; at least ``swallow_duration``).
     """
 
     subject: int
@@ -174,6 +182,7 @@ class SubjectParams:
     swallow_duration: float
     swallow_levels: np.ndarray
     eta: float
+    swallow_refractory: float
 
 
 def subject_params(subject: int, seed: int, ranges: GeneratorRanges = TRAINING_RANGES) -> SubjectParams:
@@ -199,6 +208,7 @@ def subject_params(subject: int, seed: int, ranges: GeneratorRanges = TRAINING_R
         swallow_amplitude=SWALLOW_AMPLITUDE * rng.uniform(*r.swallow_amplitude),
         swallow_duration=SWALLOW_DURATION * rng.uniform(*r.swallow_duration), swallow_levels=levels,
         eta=rng.uniform(0.8, 1.2),
+        swallow_refractory=rng.uniform(*r.swallow_refractory),  # drawn last: the other draws stay as they were
     )
 
 
@@ -227,6 +237,22 @@ def _pulse(time: np.ndarray, start: float, rise: float, hold: float, fall: float
     return 0.5 * (1 - np.cos(np.pi * up)) * 0.5 * (1 + np.cos(np.pi * down))
 
 
+def _seal(psi: np.ndarray, time: np.ndarray, onset: float, params: SubjectParams, rng) -> None:
+    """Draw a swallow's seal into psi [T,55] (in place) from ``onset`` (s): the jaw closes, the subject's
+    signature channels press, the chin rises, for about half a second."""
+    rise, hold = rng.uniform(0.1, 0.35), rng.uniform(0.3, 0.6)
+    envelope = _pulse(time, onset, rise, hold, 0.15)
+    seal, chin = rng.uniform(0.5, 0.95), rng.uniform(0.15, 0.65)
+    # The seal in the subject's signature: channel c at seal * w_c / |w|^2, so that the response's
+    # weighted seal (larynx_response) is `seal`; a little closure and roll whatever the signature.
+    press, roll, close = np.minimum(1.0, seal * params.signature / np.sum(params.signature ** 2))
+    psi[:, INDEX["jawOpen"]] *= 1 - envelope
+    for name, weight in (("mouthPress_L", press), ("mouthPress_R", press * rng.uniform(1.0, 1.1)),
+                         ("mouthClose", max(close, 0.1)), ("mouthRollLower", max(roll, 0.1)),
+                         ("mouthShrugLower", chin)):
+        psi[:, INDEX[name]] = np.maximum(psi[:, INDEX[name]], weight * envelope)
+
+
 def _band_noise(num_frames: int, fps: float, cutoff: float, rng) -> np.ndarray:
     """Unit-std noise low-passed below ``cutoff`` Hz."""
     x = gaussian_filter1d(rng.standard_normal(num_frames + 64), sigma=fps / (2 * np.pi * cutoff))[32:-32]
@@ -235,10 +261,13 @@ def _band_noise(num_frames: int, fps: float, cutoff: float, rng) -> np.ndarray:
 
 def generate_expressions(num_frames: int, fps: float, params: SubjectParams, rng: np.random.Generator,
                          swallows_per_minute: float = 8.0, blinks_per_minute: float = 15.0,
-                         expression_noise: float = 0.01) -> np.ndarray:
+                         expression_noise: float = 0.01, repeat_seals: float = 0.4) -> np.ndarray:
     """A talking face: psi [T,55] in [0, 1] at ``fps``.
 
-    ``expression_noise`` is the standard deviation of white tracker noise on every weight.
+    ``expression_noise`` is the standard deviation of white tracker noise on every weight;
+    ``repeat_seals`` the probability that a swallow's seal is followed 1.2-4 s later by a second seal
+    (through speech if need be), which the larynx takes for a swallow only after the subject's refractory
+    time (:func:`larynx_response`).
     """
     time = np.arange(num_frames) / fps
     length = num_frames / fps
@@ -267,18 +296,12 @@ def generate_expressions(num_frames: int, fps: float, params: SubjectParams, rng
     for start, stop in pauses:
         if stop - start < 1.0 or rng.random() > min(1.0, swallow_rate * (stop - start) * 2.5):
             continue
-        onset = rng.uniform(start + 0.1, stop - 0.9)
-        rise, hold = rng.uniform(0.1, 0.35), rng.uniform(0.3, 0.6)
-        envelope = _pulse(time, onset, rise, hold, 0.15)
-        seal, chin = rng.uniform(0.5, 0.95), rng.uniform(0.15, 0.65)
-        # The seal in the subject's signature: channel c at seal * w_c / |w|^2, so that the response's
-        # weighted seal (larynx_response) is `seal`; a little closure and roll whatever the signature.
-        press, roll, close = np.minimum(1.0, seal * params.signature / np.sum(params.signature ** 2))
-        psi[:, INDEX["jawOpen"]] *= 1 - envelope
-        for name, weight in (("mouthPress_L", press), ("mouthPress_R", press * rng.uniform(1.0, 1.1)),
-                             ("mouthClose", max(close, 0.1)), ("mouthRollLower", max(roll, 0.1)),
-                             ("mouthShrugLower", chin)):
-            psi[:, INDEX[name]] = np.maximum(psi[:, INDEX[name]], weight * envelope)
+        onsets = [rng.uniform(start + 0.1, stop - 0.9)]
+        if rng.random() < repeat_seals:
+            onsets.append(onsets[0] + rng.uniform(1.2, 4.0))
+        for onset in onsets:
+            if onset < length - 0.9:
+                _seal(psi, time, onset, params, rng)
 
     # Blinks, slow brow and gaze movements, a smile now and then.
     for onset in rng.uniform(0, length, rng.poisson(blinks_per_minute * length / 60.0)):
@@ -345,7 +368,7 @@ def larynx_response(psi: np.ndarray, fps: float, params: SubjectParams) -> np.nd
             continue
         amplitude = params.swallow_amplitude * (0.55 + 1.2 * now["mouthShrugLower"][frame])
         swallows += swallow_profile(time, time[frame], params.swallow_duration, amplitude, shape)
-        busy_until = time[frame] + params.swallow_duration
+        busy_until = time[frame] + max(params.swallow_duration, params.swallow_refractory)
     return params.rest + articulation + effort + swallows
 
 
@@ -371,7 +394,7 @@ def make_sequence(subject: int, index: int, num_frames: int, fps: float, seed: i
 
     ``tau_noise`` (tau units) is the standard deviation of white measurement noise on tau, as a tracker adds;
     ``ranges`` those the subject's factors are drawn from; ``expression_options`` go to
-    :func:`generate_expressions` (swallows_per_minute, blinks_per_minute, expression_noise).
+    :func:`generate_expressions` (swallows_per_minute, blinks_per_minute, expression_noise, repeat_seals).
     """
     params = subject_params(subject, seed, ranges)
     rng = np.random.default_rng([seed, subject, 2, index])

@@ -46,6 +46,7 @@ training mean.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -115,6 +116,12 @@ class LarynxTaskConfig:
     # Weights to start from instead of a random initialisation: a larynx_transformer checkpoint of the same
     # model sizes, or "pretrained" for the shipped model (trained on data=synthetic); see warm_start.
     init_from: str | None = None
+    # Rehearsal: this share of each batch's training crops comes from data=synthetic's training people (its
+    # defaults, each with a style of its own, named synthetic_<subject>), beside the pairs: the encoder keeps
+    # seeing the generator's timing rules (a swallow needs a seal held with the jaw closed, and none comes
+    # within the person's refractory time) that a few minutes of pairs show too seldom.  The length of
+    # training, the tau normalisation, validation and the baselines follow the pairs alone.
+    rehearsal: float = 0.0
 
 
 @dataclass
@@ -135,6 +142,8 @@ class SyntheticData:
     swallows_per_minute: float = 8.0       # swallows are placed in pauses of speech at about this rate
     blinks_per_minute: float = 15.0
     expression_noise: float = 0.01         # std of white tracker noise on each expression weight
+    repeat_seals: float = 0.4              # share of swallows followed by a second seal (a swallow only
+                                           # after the subject's refractory time)
 
 
 @dataclass
@@ -165,8 +174,7 @@ def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
     data = data if isinstance(data, DATA_KINDS[kind]) else to_dataclass(data, DATA_KINDS[kind], where="data")
     if kind == "synthetic":
         train_ids, heldout_ids = split_subjects(data.train_subjects, data.heldout_subjects)
-        options = {"tau_noise": data.tau_noise, "swallows_per_minute": data.swallows_per_minute,
-                   "blinks_per_minute": data.blinks_per_minute, "expression_noise": data.expression_noise}
+        options = synthetic_options(data)
         train = make_dataset(train_ids, data.sequences_per_subject, data.seconds, data.fps, data.seed, **options)
         frames = int(round(data.seconds * data.fps))
         new_takes = [make_sequence(subject, data.sequences_per_subject + i, frames, data.fps, data.seed, **options)
@@ -176,6 +184,23 @@ def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
         return train, new_takes + new_people
     pairs = load_pairs(data.path, data.fps)
     return split_by_take(pairs, float(data.val_fraction), int(data.split_seed), f"take in {data.path}")
+
+
+def synthetic_options(data: SyntheticData) -> dict:
+    """The generator options of ``data`` (:func:`data.synthetic_larynx.make_sequence`'s keywords)."""
+    return {"tau_noise": data.tau_noise, "swallows_per_minute": data.swallows_per_minute,
+            "blinks_per_minute": data.blinks_per_minute, "expression_noise": data.expression_noise,
+            "repeat_seals": data.repeat_seals}
+
+
+def rehearsal_sequences(fps: float) -> list[LarynxSequence]:
+    """``data=synthetic``'s training sequences at its defaults (:class:`SyntheticData`), at ``fps``, each subject
+    renamed ``synthetic_<subject>`` so that no name of the user's pairs is taken (``task.rehearsal``)."""
+    data = SyntheticData()
+    train_ids, _ = split_subjects(data.train_subjects, data.heldout_subjects)
+    sequences = make_dataset(train_ids, data.sequences_per_subject, data.seconds, fps, data.seed,
+                             **synthetic_options(data))
+    return [dataclasses.replace(s, subject=f"synthetic_{s.subject}") for s in sequences]
 
 
 def crop_for(train: list[LarynxSequence], crop: int, window: int) -> int:
@@ -317,8 +342,15 @@ class Task:
         train, self.val = load_sequences(cfg.data)
         self.crop = crop = crop_for(train, crop, sizes.window)  # frames per training crop
         self.train = usable_sequences(train, crop)  # the model, its normalisation and the baselines see these
-        self.subjects = sorted({s.subject for s in self.train if s.subject is not None})
         all_tau = np.concatenate([s.tau for s in self.train]).astype(np.float64)
+        pair_frames = float(sum(len(s) for s in self.train))
+        rehearsed: list[LarynxSequence] = []
+        if not 0 <= self.settings.rehearsal < 1:
+            raise InputError(f"task.rehearsal must be in [0, 1), got {self.settings.rehearsal}")
+        if self.settings.rehearsal > 0:
+            rehearsed = usable_sequences(rehearsal_sequences(self.fps), crop)
+        sampled = self.train + rehearsed
+        self.subjects = sorted({s.subject for s in sampled if s.subject is not None})
         self.tau_mean = float(all_tau.mean())
         self._model_config = {
             **OmegaConf.to_container(OmegaConf.structured(sizes), resolve=True), "fps": self.fps,
@@ -329,14 +361,20 @@ class Task:
             warm_start(self.model, self.settings.init_from)
 
         # Training crops are gathered (and interpolated, see batch) from one concatenated array.
-        self.psi = torch.from_numpy(np.concatenate([s.psi for s in self.train]))
-        self.tau = torch.from_numpy(np.concatenate([s.tau for s in self.train]))
-        lengths = torch.tensor([len(s) for s in self.train])
+        self.psi = torch.from_numpy(np.concatenate([s.psi for s in sampled]))
+        self.tau = torch.from_numpy(np.concatenate([s.tau for s in sampled]))
+        lengths = torch.tensor([len(s) for s in sampled])
         self.starts = torch.cat([torch.zeros(1, dtype=torch.long), lengths.cumsum(0)[:-1]])
         self.lengths = lengths
-        self.crop_counts = lengths - crop + 1  # valid crop positions per sequence (unwarped)
-        self.seq_subject = torch.tensor([self.model.subject_index(s.subject) for s in self.train])
-        self.seq_eta = torch.tensor([1.0 if s.eta is None else s.eta for s in self.train], dtype=torch.float32)
+        self.crop_counts = (lengths - crop + 1).double()  # valid crop positions per sequence (unwarped)
+        if rehearsed:
+            pairs = len(self.train)
+            share = self.settings.rehearsal
+            self.crop_counts[:pairs] *= (1 - share) / self.crop_counts[:pairs].sum()
+            self.crop_counts[pairs:] *= share / self.crop_counts[pairs:].sum()
+        self.pair_frames = pair_frames
+        self.seq_subject = torch.tensor([self.model.subject_index(s.subject) for s in sampled])
+        self.seq_eta = torch.tensor([1.0 if s.eta is None else s.eta for s in sampled], dtype=torch.float32)
         self._baselines: dict[str, float] | None = None
         trainer_steps = cfg.trainer.get("max_steps") if "trainer" in cfg else None
         self.total_steps = int(trainer_steps) if trainer_steps else self.max_steps()
@@ -360,7 +398,7 @@ class Task:
         """Training steps for these data: ``task.epochs`` passes over the training frames, within
         ``[task.min_steps, task.max_steps]`` (used when ``trainer.max_steps`` is null)."""
         s = self.settings
-        frames = float(self.lengths.sum())
+        frames = self.pair_frames
         steps = s.epochs * frames / (s.batch_size * self.crop)
         return int(min(s.max_steps, max(s.min_steps, round(steps))))
 
