@@ -175,7 +175,7 @@ def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
     if kind == "synthetic":
         train_ids, heldout_ids = split_subjects(data.train_subjects, data.heldout_subjects)
         options = synthetic_options(data)
-        train = make_dataset(train_ids, data.sequences_per_subject, data.seconds, data.fps, data.seed, **options)
+        train = synthetic_training_sequences(data, data.fps)
         frames = int(round(data.seconds * data.fps))
         new_takes = [make_sequence(subject, data.sequences_per_subject + i, frames, data.fps, data.seed, **options)
                      for subject in train_ids for i in range(data.new_takes_per_subject)]
@@ -193,14 +193,17 @@ def synthetic_options(data: SyntheticData) -> dict:
             "repeat_seals": data.repeat_seals}
 
 
+def synthetic_training_sequences(data: SyntheticData, fps: float) -> list[LarynxSequence]:
+    """The training people's sequences of ``data`` (``data=synthetic``), generated at ``fps``."""
+    train_ids, _ = split_subjects(data.train_subjects, data.heldout_subjects)
+    return make_dataset(train_ids, data.sequences_per_subject, data.seconds, fps, data.seed, **synthetic_options(data))
+
+
 def rehearsal_sequences(fps: float) -> list[LarynxSequence]:
     """``data=synthetic``'s training sequences at its defaults (:class:`SyntheticData`), at ``fps``, each subject
     renamed ``synthetic_<subject>`` so that no name of the user's pairs is taken (``task.rehearsal``)."""
-    data = SyntheticData()
-    train_ids, _ = split_subjects(data.train_subjects, data.heldout_subjects)
-    sequences = make_dataset(train_ids, data.sequences_per_subject, data.seconds, fps, data.seed,
-                             **synthetic_options(data))
-    return [dataclasses.replace(s, subject=f"synthetic_{s.subject}") for s in sequences]
+    return [dataclasses.replace(s, subject=f"synthetic_{s.subject}")
+            for s in synthetic_training_sequences(SyntheticData(), fps)]
 
 
 def crop_for(train: list[LarynxSequence], crop: int, window: int) -> int:
@@ -343,13 +346,11 @@ class Task:
         self.crop = crop = crop_for(train, crop, sizes.window)  # frames per training crop
         self.train = usable_sequences(train, crop)  # the model, its normalisation and the baselines see these
         all_tau = np.concatenate([s.tau for s in self.train]).astype(np.float64)
-        pair_frames = float(sum(len(s) for s in self.train))
-        rehearsed: list[LarynxSequence] = []
-        if not 0 <= self.settings.rehearsal < 1:
-            raise InputError(f"task.rehearsal must be in [0, 1), got {self.settings.rehearsal}")
-        if self.settings.rehearsal > 0:
-            rehearsed = usable_sequences(rehearsal_sequences(self.fps), crop)
-        sampled = self.train + rehearsed
+        share = float(self.settings.rehearsal)
+        if not 0 <= share < 1:
+            raise InputError(f"task.rehearsal must be in [0, 1), got {share}")
+        rehearsed = usable_sequences(rehearsal_sequences(self.fps), crop) if share > 0 else []
+        sampled = self.train + rehearsed  # what the training crops are cut from
         self.subjects = sorted({s.subject for s in sampled if s.subject is not None})
         self.tau_mean = float(all_tau.mean())
         self._model_config = {
@@ -366,13 +367,13 @@ class Task:
         lengths = torch.tensor([len(s) for s in sampled])
         self.starts = torch.cat([torch.zeros(1, dtype=torch.long), lengths.cumsum(0)[:-1]])
         self.lengths = lengths
-        self.crop_counts = (lengths - crop + 1).double()  # valid crop positions per sequence (unwarped)
+        # How often each sequence is cropped: as often as it has crop positions (unwarped); with rehearsal, the
+        # pairs' weights sum to 1 - share and the synthetic sequences' to share.
+        self.crop_weights = (lengths - crop + 1).double()
         if rehearsed:
             pairs = len(self.train)
-            share = self.settings.rehearsal
-            self.crop_counts[:pairs] *= (1 - share) / self.crop_counts[:pairs].sum()
-            self.crop_counts[pairs:] *= share / self.crop_counts[pairs:].sum()
-        self.pair_frames = pair_frames
+            self.crop_weights[:pairs] *= (1 - share) / self.crop_weights[:pairs].sum()
+            self.crop_weights[pairs:] *= share / self.crop_weights[pairs:].sum()
         self.seq_subject = torch.tensor([self.model.subject_index(s.subject) for s in sampled])
         self.seq_eta = torch.tensor([1.0 if s.eta is None else s.eta for s in sampled], dtype=torch.float32)
         self._baselines: dict[str, float] | None = None
@@ -398,7 +399,7 @@ class Task:
         """Training steps for these data: ``task.epochs`` passes over the training frames, within
         ``[task.min_steps, task.max_steps]`` (used when ``trainer.max_steps`` is null)."""
         s = self.settings
-        frames = self.pair_frames
+        frames = float(sum(len(sequence) for sequence in self.train))  # the pairs (rehearsal adds none)
         steps = s.epochs * frames / (s.batch_size * self.crop)
         return int(min(s.max_steps, max(s.min_steps, round(steps))))
 
@@ -408,7 +409,7 @@ class Task:
         """Source positions [B,crop] (float, frames into the concatenated training arrays) of ``size`` crops,
         time-warped (``task.augment``), and each crop's sequence [B]."""
         crop, augment = self.crop, self.settings.augment
-        sequence = torch.multinomial(self.crop_counts.double(), size, replacement=True, generator=generator)
+        sequence = torch.multinomial(self.crop_weights, size, replacement=True, generator=generator)
         uniform = torch.rand(size, 1, generator=generator, dtype=torch.float64)
         log_rate = math.log1p(augment.time_warp) * (2 * uniform - 1)
         cycles = crop / (torch.rand(size, 1, generator=generator, dtype=torch.float64) * 60 + 40)  # 40-100 frame period
