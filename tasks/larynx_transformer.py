@@ -342,13 +342,13 @@ class Task:
         if crop <= sizes.window:
             raise InputError(f"task.crop ({crop}) must exceed model.window ({sizes.window}) so training "
                              f"sees full attention windows")
+        share = float(self.settings.rehearsal)
+        if not 0 <= share < 1:
+            raise InputError(f"task.rehearsal must be in [0, 1), got {share}")
         train, self.val = load_sequences(cfg.data)
         self.crop = crop = crop_for(train, crop, sizes.window)  # frames per training crop
         self.train = usable_sequences(train, crop)  # the model, its normalisation and the baselines see these
         all_tau = np.concatenate([s.tau for s in self.train]).astype(np.float64)
-        share = float(self.settings.rehearsal)
-        if not 0 <= share < 1:
-            raise InputError(f"task.rehearsal must be in [0, 1), got {share}")
         rehearsed = usable_sequences(rehearsal_sequences(self.fps), crop) if share > 0 else []
         sampled = self.train + rehearsed  # what the training crops are cut from
         self.subjects = sorted({s.subject for s in sampled if s.subject is not None})
