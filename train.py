@@ -562,14 +562,19 @@ def main(cfg: DictConfig) -> None:
 
 def discard_unstarted_run(run_dir: Path) -> None:
     """Remove what hydra wrote into ``run_dir`` (``.hydra/``, the job's log) for a run refused before it saved
-    anything, and the folder if that leaves it empty: a refused run leaves no half-made run folder."""
+    anything, the folder if that leaves it empty, and the folders above it inside the working directory that
+    are left empty (``runs/<task>/`` of a first run): a refused run leaves no half-made run folder."""
     if (run_dir / "checkpoints").exists() or not run_dir.is_dir():
         return
     shutil.rmtree(run_dir / ".hydra", ignore_errors=True)
     for log_file in run_dir.glob("*.log"):
         log_file.unlink(missing_ok=True)
-    if not any(run_dir.iterdir()):
-        run_dir.rmdir()
+    run_dir, cwd = run_dir.resolve(), Path.cwd().resolve()
+    above = [folder for folder in run_dir.parents if cwd in folder.parents]  # inside the working directory
+    for folder in [run_dir, *above]:
+        if any(folder.iterdir()):
+            break
+        folder.rmdir()
 
 
 def check_command_line(argv: list[str]) -> None:

@@ -168,6 +168,11 @@ def test_cli_refused_data_leaves_no_run_folder(tmp_path):
     assert result.returncode == 2, result.stderr
     assert f"error: {tmp_path / 'missing'}: not a folder" in result.stderr and "Traceback" not in result.stderr
     assert not run_dir.exists(), list(run_dir.rglob("*"))
+    # the default run folder (runs/<task>/<time>) of a first run: runs/ is not left behind either
+    result = subprocess.run([sys.executable, str(REPO / "train.py"), "task=larynx_transformer", "task.rehearsal=1.5",
+                             "trainer.progress=false"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2 and "error: task.rehearsal must be in [0, 1), got 1.5" in result.stderr, result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == [], list(tmp_path.rglob("*"))
 
 
 # --------------------------------------------------------------------------- the loop's arithmetic
