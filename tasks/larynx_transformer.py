@@ -16,10 +16,11 @@ expression projection (``task.input_sparsity``) shrinks the input weights of the
 not follow: with a few recordings many channels co-vary with tau by chance, and a new take moves them elsewhere.
 ``task.augment`` can alter crops in ways that keep psi and tau a pair: a time warp applied to both (a
 rate per crop times a slow sinusoidal modulation), a gain and an offset per expression channel of psi,
-whole channels dropped.  All are off by default: on the real-regime benchmark each made the held-out
-error larger (a warp changes the lags and time constants, which are the person's, not the speech's; a
-gain on psi with tau kept teaches an invariance the larynx does not have: its excursion follows the
-expression's amplitude).
+whole channels dropped, white noise on every weight and frame.  All are off by default: on the real-regime
+benchmark the first three made the held-out error larger (a warp changes the lags and time constants, which
+are the person's, not the speech's; a gain on psi with tau kept teaches an invariance the larynx does not
+have: its excursion follows the expression's amplitude); white noise of 0.03 lowered every family's mean
+by 0.01-0.04 of ridge, less than one run moves with its training seed alone (benchmarks/README.md).
 With ``model.feedback`` (FaceFormer's autoregression), teacher forcing alone lets the model lean on
 the true previous tau, which it never sees at inference, so it drifts; scheduled sampling replaces
 the fed-back tau by the model's own predictions with a probability rising from 0 to
@@ -83,6 +84,7 @@ class Augment:
     psi_gain: float = 0.0         # std of the log gain per expression channel of psi (clipped to [0, 1] after)
     psi_offset: float = 0.0       # std of an offset per expression channel of psi (a neutral pose of its own)
     channel_dropout: float = 0.0  # probability of zeroing an expression channel for a whole crop
+    psi_noise: float = 0.0        # std of white noise on every expression weight and frame (tracker noise)
 
 
 @dataclass
@@ -435,7 +437,8 @@ class Task:
         gain = torch.exp(augment.psi_gain * torch.randn(size, 1, psi.shape[2], generator=generator))
         offset = augment.psi_offset * torch.randn(size, 1, psi.shape[2], generator=generator)
         kept = torch.rand(size, 1, psi.shape[2], generator=generator) >= augment.channel_dropout
-        psi = (psi * gain + offset).clamp(0.0, 1.0) * kept
+        noise = augment.psi_noise * torch.randn(psi.shape, generator=generator)
+        psi = (psi * gain + offset + noise).clamp(0.0, 1.0) * kept
         subject = self.seq_subject[sequence]
         dropped = torch.rand(size, generator=generator) < self.settings.style_dropout
         return {

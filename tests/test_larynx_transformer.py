@@ -566,6 +566,21 @@ def test_psi_gain_jitter_leaves_tau_alone(tmp_path):
     assert 0.15 < spread < 0.25  # log-gains of std task.augment.psi_gain
 
 
+def test_psi_noise_is_white_per_frame_and_channel_and_leaves_tau_alone(tmp_path):
+    overrides = ["task.augment.time_warp=0", "task.augment.warp_wobble=0", "task.augment.psi_gain=0"]
+    noisy = linear_pair_task(tmp_path, overrides + ["task.augment.psi_noise=0.05"]).batch(
+        0, torch.Generator().manual_seed(2))
+    plain = linear_pair_task(tmp_path, overrides + ["task.augment.psi_noise=0"]).batch(
+        0, torch.Generator().manual_seed(2))
+    assert torch.equal(noisy["tau"], plain["tau"])
+    inside = (plain["psi"] > 0.25) & (plain["psi"] < 0.75)  # 5 std from either clip
+    difference = (noisy["psi"] - plain["psi"])[inside].double()
+    assert difference.std().item() == pytest.approx(0.05, rel=0.05) and abs(difference.mean().item()) < 0.003
+    step = (noisy["psi"] - plain["psi"]).double()
+    lag_one = (step[:, 1:] * step[:, :-1])[inside[:, 1:] & inside[:, :-1]].mean().item()
+    assert abs(lag_one) < 0.05 * difference.var().item()  # white: correlation from one frame to the next < 0.05
+
+
 def test_the_default_run_takes_its_length_from_the_data_and_keeps_the_best_weights(tmp_path, capsys):
     """configs/trainer/larynx_transformer.yaml: trainer.max_steps null (the task's Task.max_steps), validation every
     100 steps, early stopping and the best weights restored."""
