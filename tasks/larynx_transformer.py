@@ -437,8 +437,10 @@ class Task:
         gain = torch.exp(augment.psi_gain * torch.randn(size, 1, psi.shape[2], generator=generator))
         offset = augment.psi_offset * torch.randn(size, 1, psi.shape[2], generator=generator)
         kept = torch.rand(size, 1, psi.shape[2], generator=generator) >= augment.channel_dropout
-        noise = augment.psi_noise * torch.randn(psi.shape, generator=generator)
-        psi = (psi * gain + offset + noise).clamp(0.0, 1.0) * kept
+        psi = psi * gain + offset
+        if augment.psi_noise:  # drawn only when asked for: the default runs' random streams stay as they were
+            psi = psi + augment.psi_noise * torch.randn(psi.shape, generator=generator)
+        psi = psi.clamp(0.0, 1.0) * kept
         subject = self.seq_subject[sequence]
         dropped = torch.rand(size, generator=generator) < self.settings.style_dropout
         return {

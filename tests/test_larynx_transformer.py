@@ -576,8 +576,8 @@ def test_psi_noise_is_white_per_frame_and_channel_and_leaves_tau_alone(tmp_path)
     inside = (plain["psi"] > 0.25) & (plain["psi"] < 0.75)  # 5 std from either clip
     difference = (noisy["psi"] - plain["psi"])[inside].double()
     assert difference.std().item() == pytest.approx(0.05, rel=0.05) and abs(difference.mean().item()) < 0.003
-    step = (noisy["psi"] - plain["psi"]).double()
-    lag_one = (step[:, 1:] * step[:, :-1])[inside[:, 1:] & inside[:, :-1]].mean().item()
+    added = (noisy["psi"] - plain["psi"]).double()
+    lag_one = (added[:, 1:] * added[:, :-1])[inside[:, 1:] & inside[:, :-1]].mean().item()
     assert abs(lag_one) < 0.05 * difference.var().item()  # white: correlation from one frame to the next < 0.05
 
 
