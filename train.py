@@ -46,6 +46,7 @@ number of processes, continuing the same computation up to float rounding.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import importlib.util
 import json
 import math
@@ -372,9 +373,17 @@ def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
         started_group = True
     try:
-        return _fit(cfg, trainer, Path(from_rank0(str(run_dir), ranks)), ranks, device)
+        final = _fit(cfg, trainer, Path(from_rank0(str(run_dir), ranks)), ranks, device)
+        if started_group:
+            # _fit's DDP wrapper holds the group in its reducer: free it (it sits in reference cycles) and let
+            # every rank get here before the group goes; a rank that tore gloo down while another still wrote
+            # its checkpoint aborted at exit ("terminate called without an active exception").
+            gc.collect()
+            dist.barrier()
+        return final
     finally:
         if started_group:
+            gc.collect()
             dist.destroy_process_group()
 
 
