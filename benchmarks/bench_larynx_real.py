@@ -260,12 +260,22 @@ def family_tau(family: str, psi: np.ndarray, subject: int, seed: int, noise_seed
     return (tau + TRACKER_NOISE * rng.standard_normal(len(tau))).astype(np.float32)
 
 
-def swallow_frames(family: str, psi: np.ndarray, subject: int, seed: int) -> np.ndarray:
-    """bool [T]: the frames where ``subject``'s swallows move tau (their part of tau, the family with the
-    person's swallow amplitude set to 0 subtracted, exceeds 1e-4 UV units)."""
+def articulation_part(family: str, psi: np.ndarray, subject: int, seed: int) -> np.ndarray:
+    """[T]: ``subject``'s tau without swallows (the family with the person's swallow amplitude set to 0) and
+    without tracker noise."""
     p = person(family, subject, seed, terms=5)
-    psi = psi.astype(np.float64)
-    return np.abs(FAMILIES[family](psi, p) - FAMILIES[family](psi, dataclasses.replace(p, swallow=0.0))) > 1e-4
+    return FAMILIES[family](psi.astype(np.float64), dataclasses.replace(p, swallow=0.0))
+
+
+def swallow_part(family: str, psi: np.ndarray, subject: int, seed: int) -> np.ndarray:
+    """[T]: ``subject``'s swallows' part of tau (no tracker noise)."""
+    p = person(family, subject, seed, terms=5)
+    return FAMILIES[family](psi.astype(np.float64), p) - articulation_part(family, psi, subject, seed)
+
+
+def swallow_frames(family: str, psi: np.ndarray, subject: int, seed: int) -> np.ndarray:
+    """bool [T]: the frames where ``subject``'s swallows move tau (:func:`swallow_part` exceeds 1e-4 UV)."""
+    return np.abs(swallow_part(family, psi, subject, seed)) > 1e-4
 
 
 def plot_heldout(path: Path, heldout: list[LarynxSequence], masks: list[np.ndarray],
@@ -512,6 +522,15 @@ def summarise(results: dict[str, list[dict[str, float]]]) -> str:
     return "\n".join(lines)
 
 
+def chosen_families(parser: argparse.ArgumentParser, text: str) -> list[str]:
+    """``--families``: comma-separated names of FAMILIES, or all; a parser error names an unknown one."""
+    families = list(FAMILIES) if text == "all" else text.split(",")
+    unknown = [f for f in families if f not in FAMILIES]
+    if unknown:
+        parser.error(f"--families: unknown {', '.join(unknown)}; expected all or some of {', '.join(FAMILIES)}")
+    return families
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--families", default="all", help="comma-separated names of FAMILIES, or all")
@@ -524,10 +543,7 @@ def main() -> None:
     parser.add_argument("--no-gru", action="store_true", help="skip the GRU baseline (experiments)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    families = list(FAMILIES) if args.families == "all" else args.families.split(",")
-    unknown = [f for f in families if f not in FAMILIES]
-    if unknown:
-        parser.error(f"--families: unknown {', '.join(unknown)}; expected all or some of {', '.join(FAMILIES)}")
+    families = chosen_families(parser, args.families)
     recordings = load_recordings()  # first: a missing recording stops the run before anything is written
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
