@@ -374,15 +374,11 @@ def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
         started_group = True
     try:
         final = _fit(cfg, trainer, Path(from_rank0(str(run_dir), ranks)), ranks, device)
-        if started_group:
-            # _fit's DDP wrapper holds the group in its reducer: free it (it sits in reference cycles) and let
-            # every rank get here before the group goes; a rank that tore gloo down while another still wrote
-            # its checkpoint aborted at exit ("terminate called without an active exception").
-            gc.collect()
+        if started_group:  # a rank that tore gloo down while rank 0 still wrote its checkpoint aborted at exit
             dist.barrier()
         return final
     finally:
-        if started_group:
+        if started_group:  # _fit's DDP wrapper holds the group in its reducer, in reference cycles: free it first
             gc.collect()
             dist.destroy_process_group()
 

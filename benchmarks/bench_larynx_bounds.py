@@ -44,9 +44,11 @@ from bench_larynx_real import (  # noqa: E402
     SUBJECTS,
     articulation_part,
     chosen_families,
+    fire,
     heldout_name,
     load_recordings,
     make_pairs,
+    run_length,
     swallow_frames,
     swallow_part,
 )
@@ -57,22 +59,12 @@ BELOW = (0.05, 0.1, 0.15, 0.25)   # levels a weight can stay under (a closed jaw
 BELOW_FRAMES = (3, 6, 9, 12, 15, 20, 30)
 ABOVE = (0.3, 0.5)                # levels a weight can rise over (a blink: > 0.5; an open jaw: > 0.25)
 ABOVE_FRAMES = (1, 3, 6)
-ONSET_FRAMES = 3
+ONSET_FRAMES = 3                  # frames from a hold's start that count as its onset
 LABEL_FRAMES = 5                  # an onset and the frames after it, labelled positive
 POSITIVE_MASS = 0.2               # class weight: the positives' share of the loss
-L2_GRID = (0.01, 0.1, 1.0)       # the detector's L2 weights tried; the bound is the best (hindsight)
+L2_GRID = (0.01, 0.1, 1.0)        # the detector's L2 weights tried; the bound is the best (hindsight)
 RESPONSE_FRAMES = 60              # 2 s: longer than every family's swallow (at most 1.3 s)
 MATCH_FRAMES = 6                  # 0.2 s
-
-
-def run_length(condition: np.ndarray) -> np.ndarray:
-    """[T, C] -> [T, C]: for how many frames up to and including t each column has been true (causal)."""
-    out = np.zeros(condition.shape, np.int32)
-    count = np.zeros(condition.shape[1], np.int32)
-    for t, row in enumerate(condition):
-        count = np.where(row, count + 1, 0)
-        out[t] = count
-    return out
 
 
 def hold_features(psi: np.ndarray) -> np.ndarray:
@@ -84,11 +76,6 @@ def hold_features(psi: np.ndarray) -> np.ndarray:
             held = run_length(side(psi, level))
             columns += [held >= n for n in frames] + [(held >= n) & (held < n + ONSET_FRAMES) for n in frames]
     return np.concatenate(columns, axis=1).astype(np.float32)
-
-
-def onsets(mask: np.ndarray) -> np.ndarray:
-    """Frames where a bool [T] mask switches on."""
-    return np.flatnonzero(mask[1:] & ~mask[:-1]) + 1
 
 
 def onset_labels(num_frames: int, frames: np.ndarray) -> np.ndarray:
@@ -131,19 +118,11 @@ def fit_detector(features: np.ndarray, labels: np.ndarray, seed: int, l2: float)
     return probability
 
 
-def detections(probability: np.ndarray, threshold: float, refractory: int) -> list[int]:
-    above = probability > threshold
-    kept: list[int] = []
-    for frame in onsets(above):
-        if not kept or frame - kept[-1] >= refractory:
-            kept.append(int(frame))
-    return kept
-
-
-def count_threshold(probability: np.ndarray, count: int, refractory: int) -> float:
-    """The threshold in 0.05..0.95 whose :func:`detections` number closest to ``count``."""
+def count_threshold(probability: np.ndarray, count: int, refractory: float) -> float:
+    """The threshold in 0.05..0.95 at which ``probability`` fires (:func:`fire`, ``refractory`` seconds apart)
+    closest to ``count`` times."""
     return float(min(np.linspace(0.05, 0.95, 19),
-                     key=lambda c: abs(len(detections(probability, c, refractory)) - count)))
+                     key=lambda c: abs(len(fire(probability > c, refractory)) - count)))
 
 
 def hits(found: list[int], true: np.ndarray) -> int:
@@ -171,7 +150,7 @@ def bounds(recordings: dict[str, np.ndarray], family: str, seed: int, work: Path
     for name, psi in recordings.items():
         if name == held:
             continue
-        true = onsets(swallow_frames(family, psi, 0, seed))
+        true = fire(swallow_frames(family, psi, 0, seed), 0.0)
         gaps += np.diff(true).tolist()
         features.append(hold_features(psi))
         labels.append(onset_labels(len(psi), true))
@@ -179,9 +158,9 @@ def bounds(recordings: dict[str, np.ndarray], family: str, seed: int, work: Path
         swallow_mean += [swallow_part(family, psi, subject, seed) for subject in range(SUBJECTS)]
     features, labels = np.concatenate(features), np.concatenate(labels)
     level = float(np.concatenate(swallow_mean).mean())
-    refractory = int(min(gaps)) if gaps else int(3 * FPS)
+    refractory = min(gaps) / FPS if gaps else 3.0  # seconds
     psi = recordings[held]
-    true = onsets(swallow_frames(family, psi, 0, seed))
+    true = fire(swallow_frames(family, psi, 0, seed), 0.0)
     articulation = {s.subject: articulation_part(family, psi, int(s.subject[1:]), seed) for s in heldout}
     swallowing = {s.subject: swallow_part(family, psi, int(s.subject[1:]), seed) for s in heldout}
     result = {"ridge": ridge, "onsets": float(len(true)),
@@ -200,10 +179,9 @@ def bounds(recordings: dict[str, np.ndarray], family: str, seed: int, work: Path
             segments = [mine[f:f + RESPONSE_FRAMES] for f in true if f + RESPONSE_FRAMES <= len(psi)]
             response = np.mean(segments, axis=0) if segments else np.zeros(RESPONSE_FRAMES)
             detected.append(articulation[sequence.subject] + np.convolve(density, response)[: len(psi)])
-        found = detections(heldout_probability, threshold, refractory)
+        found = fire(heldout_probability > threshold, refractory)
         result[f"detector {l2:g}"] = rmse(detected, heldout) / ridge
         result[f"hits {l2:g}"] = float(hits(found, true))
-        result[f"detections {l2:g}"] = float(len(found))
     return result
 
 

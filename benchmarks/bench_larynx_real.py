@@ -138,15 +138,19 @@ def fire(cue: np.ndarray, refractory: float) -> list[int]:
     return kept
 
 
+def run_length(condition: np.ndarray) -> np.ndarray:
+    """bool [T] or [T, C] -> int, same shape: for how many frames up to and including t it has been true."""
+    out = np.zeros(condition.shape, np.int32)
+    count = np.zeros(condition.shape[1:], np.int32)
+    for t, row in enumerate(condition):
+        count = np.where(row, count + 1, 0)
+        out[t] = count
+    return out
+
+
 def held_for(condition: np.ndarray, seconds: float) -> np.ndarray:
     """True where ``condition`` has held for the last ``seconds`` (causal)."""
-    frames = max(1, int(round(seconds * FPS)))
-    run = np.zeros(len(condition), int)
-    count = 0
-    for t, c in enumerate(condition):
-        count = count + 1 if c else 0
-        run[t] = count
-    return run >= frames
+    return run_length(condition) >= max(1, int(round(seconds * FPS)))
 
 
 def swallows(num_frames: int, onsets: list[int], amplitudes: np.ndarray, duration: float,

@@ -41,7 +41,7 @@ def test_a_familys_parts_add_up_to_its_tau_less_the_tracker_noise():
 
 def test_run_length_and_the_onset_pulse_of_a_hold():
     condition = np.array([[0], [1], [1], [1], [0], [1]], bool)
-    assert bounds.run_length(condition)[:, 0].tolist() == [0, 1, 2, 3, 0, 1]
+    assert bench.run_length(condition)[:, 0].tolist() == [0, 1, 2, 3, 0, 1]
     psi = np.full((40, 55), 0.2, np.float32)
     psi[10:30, bench.K["jawOpen"]] = 0.0  # closed from frame 10
     features = bounds.hold_features(psi).reshape(40, -1, 55)[:, :, bench.K["jawOpen"]]
@@ -56,7 +56,7 @@ def test_the_detector_learns_a_hold_rule_and_finds_it_in_speech_of_another_rhyth
     another (longer openings, shorter closures), with the threshold that gives the training take as many
     detections as onsets: it finds at least 90% of the new take's onsets, with few false ones."""
     def labelled(psi):
-        true = bounds.onsets(np.asarray(bench.held_for(psi[:, bench.K["jawOpen"]] < 0.1, 0.3)))
+        true = bench.fire(bench.held_for(psi[:, bench.K["jawOpen"]] < 0.1, 0.3), 0.0)
         return true, bounds.onset_labels(len(psi), true)
 
     train = talking(1, 3000, (0.3, 1.5), (0.1, 1.0))
@@ -64,9 +64,9 @@ def test_the_detector_learns_a_hold_rule_and_finds_it_in_speech_of_another_rhyth
     trained, label = labelled(train)
     features = bounds.hold_features(train)
     probability = bounds.fit_detector(features, label, seed=0, l2=1.0)
-    threshold = bounds.count_threshold(probability(features), len(trained), refractory=15)
+    threshold = bounds.count_threshold(probability(features), len(trained), refractory=0.5)
     true, _ = labelled(test)
-    found = bounds.detections(probability(bounds.hold_features(test)), threshold, refractory=15)
+    found = bench.fire(probability(bounds.hold_features(test)) > threshold, 0.5)
     assert len(true) > 20
     assert bounds.hits(found, true) >= 0.9 * len(true), (bounds.hits(found, true), len(true), len(found))
     assert len(found) <= 1.2 * len(true)
