@@ -57,6 +57,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import tasks  # noqa: E402,F401  (registers the config schemas)
 import train  # noqa: E402
 from data.cli import compose_config  # noqa: E402
+from data.errors import InputError  # noqa: E402
 from data.expressions import EXPRESSION_NAMES, read_expressions  # noqa: E402
 from data.pairs import LarynxSequence, save_pair  # noqa: E402
 from data.plots import figure, save_figure  # noqa: E402
@@ -82,10 +83,14 @@ def load_recordings() -> dict[str, np.ndarray]:
     """name -> psi [T,55] at 30 fps; SystemExit naming what is missing."""
     missing = [str(p) for p in RECORDINGS.values() if not p.is_file()]
     if missing:
-        raise SystemExit("bench_larynx_real needs the real expression recordings, not found: " + ", ".join(missing))
+        raise SystemExit("the real-regime benchmarks need the real expression recordings, not found: "
+                         + ", ".join(missing))
     out = {}
     for name, path in RECORDINGS.items():
-        track = read_expressions(path, fps=FPS)
+        try:
+            track = read_expressions(path, fps=FPS)
+        except InputError as e:  # the reader's message names the file, the column and the line
+            raise SystemExit(f"error: {e}") from None
         if abs(track.fps - FPS) > 1e-6:
             raise SystemExit(f"{path}: {track.fps} fps, expected {FPS}")
         out[name] = track.psi.astype(np.float32)
