@@ -19,10 +19,11 @@ psi[:t+1] only), nonlinear and subject dependent:
   rounding and rises with lip spreading, softly saturating, low-passed by a first- or second-order
   inertia;
 - effort: a saturating rise with the articulation speed integrated over a second or more (phrases);
-- swallows: when the seal (the signature's mix of press, roll and closure, with the jaw closed)
-  crosses a threshold, a swallow profile (``data.synthetic_tau.swallow_profile``, with the subject's
-  own landmark levels and duration) starts, its amplitude set by the chin raise at that moment; for the
-  subject's refractory time after a swallow's onset (at least its duration) further crossings are ignored.
+- swallows: when the person's cue switches on (:func:`swallow_cue`; by default the seal, the
+  signature's mix of press, roll and closure with the jaw closed, crossing a threshold), a swallow
+  profile (``data.synthetic_tau.swallow_profile``, with the subject's own landmark levels and duration)
+  starts, its amplitude set by the chin raise at that moment; for the subject's refractory time after a
+  swallow's onset (at least its duration) further crossings are ignored.
   The face seals more often than the larynx swallows (a second seal follows some swallows within a few
   seconds), so whether a seal is a swallow depends on how long ago the last one was: a timing rule that
   needs seconds of memory, as swallows cued by the face in real captures do.
@@ -41,7 +42,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from scipy.signal import lfilter
 
 from data.expressions import EXPRESSION_NAMES, NUM_EXPRESSIONS
@@ -80,6 +81,17 @@ MOUTH = [k for k, name in enumerate(EXPRESSION_NAMES) if name.startswith(("mouth
 # the cue is not unambiguous.
 SWALLOW_SEAL_THRESHOLD = 0.35
 
+# What a person's swallows follow (their *cue*, drawn per person from GeneratorRanges.cues):
+# - "seal": the signature's seal crossing SWALLOW_SEAL_THRESHOLD (above);
+# - "pause": the jaw kept below the person's cue_level for cue_hold seconds (a pause in speech);
+# - "snap": the jaw falling below cue_level after being open past cue_open within the last cue_hold seconds;
+# - "blink": a blink (eyeBlink, mean of both sides, above 0.5) while the jaw is below cue_level.
+# Modelling choices: the face shows what precedes a swallow in several ways, and which way a person's
+# larynx follows is a property of the person that a few minutes of their pairs have to reveal.  The
+# default generator's people all swallow at a seal (data.swallow_cues); with several kinds, the trained
+# model cannot yet tell whose swallows follow what (benchmarks/README.md, "Swallow cues").
+SWALLOW_CUES = ("seal", "pause", "snap", "blink")
+
 
 def _vector(weights: dict[str, float]) -> np.ndarray:
     out = np.zeros(NUM_EXPRESSIONS)
@@ -104,7 +116,10 @@ class GeneratorRanges:
     ``swallow_amplitude`` factors of SWALLOW_DURATION / SWALLOW_AMPLITUDE; ``dip`` and ``undershoot``
     the swallow's valley levels (fractions of its amplitude; the defaults' are -0.12 and -0.22);
     ``swallow_refractory`` (s) the shortest time from one swallow's onset to the next (a modelling choice:
-    a seal within it is no swallow).
+    a seal within it is no swallow); ``cues`` the kinds of swallow cue a person is drawn from (uniformly,
+    :data:`SWALLOW_CUES`), ``cue_level`` the jawOpen below which the jaw counts as closed, ``cue_hold`` (s)
+    how long a pause lasts before it cues, or how recently the jaw was open for a snap, ``cue_open`` the
+    jawOpen a snap comes down from.
     """
 
     lag: Range = (0.03, 0.15)
@@ -121,6 +136,10 @@ class GeneratorRanges:
     dip: Range = (-0.2, -0.05)
     undershoot: Range = (-0.3, -0.1)
     swallow_refractory: Range = (2.0, 5.0)
+    cues: tuple[str, ...] = ("seal",)
+    cue_level: Range = (0.06, 0.14)
+    cue_hold: Range = (0.2, 0.6)
+    cue_open: Range = (0.2, 0.35)
 
 
 TRAINING_RANGES = GeneratorRanges()
@@ -132,7 +151,7 @@ HELDOUT_RANGES = GeneratorRanges(
     lag=(0.1, 0.22), inertia=(0.08, 0.18), second_order=0.5, gain=(0.5, 2.0), jaw_power=(1.3, 1.9),
     saturation=(0.012, 0.022), effort_time=(1.6, 2.5), effort_gain=(0.006, 0.012), signature=(0.0, 1.0),
     swallow_duration=(1.05, 1.3), swallow_amplitude=(0.6, 1.4), dip=(-0.08, 0.0), undershoot=(-0.4, -0.2),
-    swallow_refractory=(3.0, 7.0))
+    swallow_refractory=(3.0, 7.0), cue_level=(0.08, 0.17), cue_hold=(0.3, 0.8), cue_open=(0.25, 0.4))
 
 
 def heldout_ranges(shift: float = 1.0) -> GeneratorRanges:
@@ -141,7 +160,9 @@ def heldout_ranges(shift: float = 1.0) -> GeneratorRanges:
     values = {}
     for f in dataclasses.fields(GeneratorRanges):
         a, b = getattr(TRAINING_RANGES, f.name), getattr(HELDOUT_RANGES, f.name)
-        if isinstance(a, tuple):
+        if f.name == "cues":  # kinds, not a range: the held-out people swallow at the training people's kinds
+            values[f.name] = a
+        elif isinstance(a, tuple):
             values[f.name] = tuple((1 - shift) * x + shift * y for x, y in zip(a, b))
         else:
             values[f.name] = (1 - shift) * a + shift * b
@@ -159,7 +180,8 @@ class SubjectParams:
     ``saturation`` (tau), ``effort_gain`` (tau) and ``effort_time`` (s), ``swallow_amplitude`` (tau),
     ``swallow_duration`` (s), ``swallow_levels`` [5] (landmark levels of the swallow, fractions of its
     amplitude), ``eta`` (larynx size), ``swallow_refractory`` (s, from a swallow's onset to the earliest next
-    one; at least ``swallow_duration``).
+    one; at least ``swallow_duration``); ``cue`` what their swallows follow (:data:`SWALLOW_CUES`) with its
+    ``cue_level``, ``cue_hold`` (s) and ``cue_open`` (:class:`GeneratorRanges`).
     """
 
     subject: int
@@ -183,6 +205,10 @@ class SubjectParams:
     swallow_levels: np.ndarray
     eta: float
     swallow_refractory: float
+    cue: str = "seal"
+    cue_level: float = 0.1
+    cue_hold: float = 0.4
+    cue_open: float = 0.25
 
 
 def subject_params(subject: int, seed: int, ranges: GeneratorRanges = TRAINING_RANGES) -> SubjectParams:
@@ -208,7 +234,9 @@ def subject_params(subject: int, seed: int, ranges: GeneratorRanges = TRAINING_R
         swallow_amplitude=SWALLOW_AMPLITUDE * rng.uniform(*r.swallow_amplitude),
         swallow_duration=SWALLOW_DURATION * rng.uniform(*r.swallow_duration), swallow_levels=levels,
         eta=rng.uniform(0.8, 1.2),
-        swallow_refractory=rng.uniform(*r.swallow_refractory),  # drawn last: the other draws stay as they were
+        swallow_refractory=rng.uniform(*r.swallow_refractory),  # drawn after the others: they stay as they were
+        cue=str(r.cues[rng.integers(len(r.cues))]), cue_level=rng.uniform(*r.cue_level),
+        cue_hold=rng.uniform(*r.cue_hold), cue_open=rng.uniform(*r.cue_open),
     )
 
 
@@ -337,6 +365,29 @@ def seal_strength(psi: np.ndarray, params: SubjectParams) -> np.ndarray:
     return (parts @ params.signature) * (1 - psi[:, INDEX["jawOpen"]])
 
 
+def swallow_cue(psi: np.ndarray, fps: float, params: SubjectParams) -> np.ndarray:
+    """bool [T]: where the subject's swallow cue (``params.cue``, one of :data:`SWALLOW_CUES`) is on; a swallow
+    can start where it switches on.  Causal."""
+    jaw = np.asarray(psi[:, INDEX["jawOpen"]], np.float64)
+    closed = jaw < params.cue_level
+    if params.cue == "seal":
+        return seal_strength(psi, params) >= SWALLOW_SEAL_THRESHOLD
+    if params.cue == "blink":
+        blink = 0.5 * (psi[:, INDEX["eyeBlink_L"]] + psi[:, INDEX["eyeBlink_R"]])
+        return (blink > 0.5) & closed
+    frames = max(1, int(round(params.cue_hold * fps)))
+    if params.cue == "pause":
+        held = np.zeros(len(jaw), np.int64)  # frames the jaw has stayed closed, up to and including t
+        for t in range(len(jaw)):
+            held[t] = held[t - 1] + 1 if closed[t] and t > 0 else int(closed[t])
+        return held >= frames
+    if params.cue == "snap":
+        # the largest jawOpen of frames t-frames+1..t (the window ends at t: causal)
+        recent_max = maximum_filter1d(jaw, size=frames, origin=(frames - 1) // 2, mode="nearest")
+        return closed & (recent_max > params.cue_open)
+    raise ValueError(f"unknown swallow cue '{params.cue}' (expected one of {', '.join(SWALLOW_CUES)})")
+
+
 def larynx_response(psi: np.ndarray, fps: float, params: SubjectParams) -> np.ndarray:
     """tau [T] driven by psi [T,55] at ``fps``: causal (tau[t] uses psi[:t+1]), nonlinear, subject dependent."""
     psi = np.asarray(psi, dtype=np.float64)
@@ -356,11 +407,11 @@ def larynx_response(psi: np.ndarray, fps: float, params: SubjectParams) -> np.nd
     speed = np.abs(np.diff(lagged[:, MOUTH], axis=0, prepend=lagged[:1, MOUTH])).sum(axis=1) * fps
     effort = params.effort_gain * np.tanh(_low_pass(speed, fps, params.effort_time) / 4.0)
 
-    # The swallow reflex follows the lip seal without the subject's articulation lag.
-    seal = seal_strength(psi, params)
+    # The swallow reflex follows its cue without the subject's articulation lag.
+    cue = swallow_cue(psi, fps, params)
     time = np.arange(num_frames) / fps
     swallows = np.zeros(num_frames)
-    crossings = np.flatnonzero((seal[1:] >= SWALLOW_SEAL_THRESHOLD) & (seal[:-1] < SWALLOW_SEAL_THRESHOLD)) + 1
+    crossings = np.flatnonzero(cue[1:] & ~cue[:-1]) + 1
     shape = SwallowShape(levels=params.swallow_levels)
     busy_until = -np.inf
     for frame in crossings:

@@ -59,7 +59,15 @@ from data.cli import REQUIRED, register_config, to_dataclass
 from data.errors import InputError
 from data.expressions import NUM_EXPRESSIONS
 from data.pairs import LarynxSequence, load_pairs, split_by_take
-from data.synthetic_larynx import heldout_ranges, make_dataset, make_sequence, split_subjects
+from data.synthetic_larynx import (
+    SWALLOW_CUES,
+    TRAINING_RANGES,
+    GeneratorRanges,
+    heldout_ranges,
+    make_dataset,
+    make_sequence,
+    split_subjects,
+)
 from models.checkpoint import load_checkpoint
 from models.larynx_transformer import SIZES, LarynxTransformerConfig, build_model, transfer_weights
 from models.pretrained import default_checkpoint
@@ -146,6 +154,10 @@ class SyntheticData:
     expression_noise: float = 0.01         # std of white tracker noise on each expression weight
     repeat_seals: float = 0.4              # share of swallows followed by a second seal (a swallow only
                                            # after the subject's refractory time)
+    # What each person's swallows follow, drawn per person from these kinds (data.synthetic_larynx.SWALLOW_CUES:
+    # seal, pause, snap, blink); every held-out person too.  One kind by default: with several, the model does
+    # not learn whose swallows follow what (benchmarks/README.md, "Swallow cues").
+    swallow_cues: list[str] = field(default_factory=lambda: ["seal"])
 
 
 @dataclass
@@ -182,17 +194,28 @@ def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
         new_takes = [make_sequence(subject, data.sequences_per_subject + i, frames, data.fps, data.seed, **options)
                      for subject in train_ids for i in range(data.new_takes_per_subject)]
         new_people = make_dataset(heldout_ids, data.heldout_sequences_per_subject, data.seconds, data.fps, data.seed,
-                                  ranges=heldout_ranges(data.heldout_shift), **options)
+                                  **{**options, "ranges": with_cues(heldout_ranges(data.heldout_shift), data)})
         return train, new_takes + new_people
     pairs = load_pairs(data.path, data.fps)
     return split_by_take(pairs, float(data.val_fraction), int(data.split_seed), f"take in {data.path}")
 
 
+def with_cues(ranges: GeneratorRanges, data: SyntheticData) -> GeneratorRanges:
+    """``ranges`` whose people swallow at the kinds of ``data.swallow_cues``; InputError naming an unknown kind."""
+    cues = tuple(str(c) for c in data.swallow_cues)
+    unknown = [c for c in cues if c not in SWALLOW_CUES]
+    if unknown or not cues:
+        raise InputError(f"data.swallow_cues: {', '.join(unknown) or 'empty'}; expected some of "
+                         f"{', '.join(SWALLOW_CUES)}")
+    return dataclasses.replace(ranges, cues=cues)
+
+
 def synthetic_options(data: SyntheticData) -> dict:
-    """The generator options of ``data`` (:func:`data.synthetic_larynx.make_sequence`'s keywords)."""
+    """The generator options of ``data`` (:func:`data.synthetic_larynx.make_sequence`'s keywords; the training
+    people's ranges)."""
     return {"tau_noise": data.tau_noise, "swallows_per_minute": data.swallows_per_minute,
             "blinks_per_minute": data.blinks_per_minute, "expression_noise": data.expression_noise,
-            "repeat_seals": data.repeat_seals}
+            "repeat_seals": data.repeat_seals, "ranges": with_cues(TRAINING_RANGES, data)}
 
 
 def synthetic_training_sequences(data: SyntheticData, fps: float) -> list[LarynxSequence]:

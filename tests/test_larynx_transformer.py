@@ -20,6 +20,7 @@ from data.pairs import save_pair
 from data.synthetic_larynx import (
     HELDOUT_RANGES,
     HELDOUT_SUBJECT_START,
+    SWALLOW_CUES,
     SWALLOW_SEAL_THRESHOLD,
     TRAINING_RANGES,
     generate_expressions,
@@ -30,6 +31,7 @@ from data.synthetic_larynx import (
     seal_strength,
     split_subjects,
     subject_params,
+    swallow_cue,
 )
 from data.synthetic_tau import SWALLOW_LANDMARK_PHASES
 from models.checkpoint import load_model, save_checkpoint
@@ -295,6 +297,32 @@ def test_generator_options_come_from_the_config():
     assert sum(swallow_count(s) for s in busy) > sum(swallow_count(s) for s in default) > 0
 
 
+def test_swallow_cues_come_from_the_config():
+    """data.swallow_cues sets the kinds of cue the people of data=synthetic swallow at, held-out people too; the
+    default is the seal alone (the shipped model's data); an unknown kind is refused by name."""
+    from tasks.larynx_transformer import SyntheticData, load_sequences, with_cues
+
+    assert {subject_params(i, seed=0, ranges=with_cues(TRAINING_RANGES, SyntheticData())).cue
+            for i in range(30)} == {"seal"}
+    data = tiny_config(data=["data.train_subjects=12", "data.sequences_per_subject=1", "data.seconds=20",
+                             "data.heldout_subjects=4", "data.heldout_sequences_per_subject=1", "data.tau_noise=0",
+                             "data.swallow_cues=[pause,blink]"]).data
+    train, val = load_sequences(data)
+    cues = with_cues(TRAINING_RANGES, SyntheticData(swallow_cues=["pause", "blink"]))
+    people = {s.subject: subject_params(int(s.subject[1:]), seed=0, ranges=cues) for s in train}
+    assert {p.cue for p in people.values()} == {"pause", "blink"}
+    for s in train:  # the sequences' tau is that of people drawn with those cues
+        np.testing.assert_allclose(s.tau, larynx_response(s.psi, s.fps, people[s.subject]), atol=1e-6)
+    heldout = [s for s in val if int(s.subject[1:]) >= HELDOUT_SUBJECT_START]
+    shifted = with_cues(heldout_ranges(1.0), SyntheticData(swallow_cues=["pause", "blink"]))
+    for s in heldout:
+        person = subject_params(int(s.subject[1:]), seed=0, ranges=shifted)
+        assert person.cue in {"pause", "blink"}
+        np.testing.assert_allclose(s.tau, larynx_response(s.psi, s.fps, person), atol=1e-6)
+    with pytest.raises(InputError, match="data.swallow_cues: cough; expected some of seal, pause, snap, blink"):
+        load_sequences(tiny_config(data=["data.swallow_cues=[seal,cough]"]).data)
+
+
 def swallow_count(sequence) -> int:
     """Seals (the subject's mix of press, roll and closure, jaw closed) crossing the swallow threshold: how
     data.synthetic_larynx starts a swallow."""
@@ -313,8 +341,8 @@ def test_larynx_process_is_causal_and_subject_dependent():
 
 
 def press_only(params):
-    """The subject with the swallow path alone, sealing by lip press only."""
-    return dataclasses.replace(params, rest=0.0, effort_gain=0.0, signature=np.array([1.0, 0.0, 0.0]))
+    """The subject with the swallow path alone, swallowing at a seal made by lip press only."""
+    return dataclasses.replace(params, rest=0.0, effort_gain=0.0, signature=np.array([1.0, 0.0, 0.0]), cue="seal")
 
 
 def test_swallow_pattern_raises_tau():
@@ -384,6 +412,56 @@ def test_swallows_in_the_expressions_follow_the_signature():
         channel = [np.minimum(psi[:, K["mouthPress_L"]], psi[:, K["mouthPress_R"]]), psi[:, K["mouthRollLower"]],
                    psi[:, K["mouthClose"]]][strongest]
         assert channel[seal >= SWALLOW_SEAL_THRESHOLD].mean() > 0.3  # the seal is made of the signature's channel
+
+
+def onsets_of(cue: np.ndarray) -> list[int]:
+    return [int(f) for f in np.flatnonzero(cue[1:] & ~cue[:-1]) + 1]
+
+
+def test_each_swallow_cue_fires_on_its_own_event_of_the_face():
+    """A face that pauses (jaw shut and held), snaps the jaw shut, blinks on an open jaw and on a shut one:
+    each cue kind switches on at its event only, and the larynx follows the person's kind."""
+    fps = 30.0
+    psi = np.zeros((360, 55), np.float32)
+    jaw = np.full(360, 0.4)
+    jaw[60:90] = 0.02     # a pause of 1 s (closed from 2 s)
+    jaw[150:155] = 0.02   # a short closure of 5 frames: a snap shut, no pause
+    jaw[240:360] = 0.02   # closed from 8 s on, with a blink at 9 s
+    psi[:, K["jawOpen"]] = jaw
+    for start in (200, 270):  # blinks at 6.7 s (jaw open) and 9 s (jaw shut)
+        psi[start:start + 4, [K["eyeBlink_L"], K["eyeBlink_R"]]] = 0.9
+    base = dataclasses.replace(press_only(subject_params(0, seed=0)), cue_level=0.1, cue_hold=0.4, cue_open=0.3,
+                               swallow_refractory=2.0)
+    expected = {"pause": [60 + 11, 240 + 11], "snap": [60, 150, 240], "blink": [270], "seal": []}
+    for cue in SWALLOW_CUES:
+        params = dataclasses.replace(base, cue=cue)
+        assert onsets_of(swallow_cue(psi, fps, params)) == expected[cue], cue
+        swallows = larynx_response(psi, fps, params) - larynx_response(
+            psi, fps, dataclasses.replace(params, swallow_amplitude=0.0))
+        first = expected[cue][0] if expected[cue] else len(psi)
+        assert np.abs(swallows[:first]).max() < 1e-12, cue  # still before the first event
+        if expected[cue]:
+            assert swallows[first:first + int(params.swallow_duration * fps)].max() > 0.5 * params.swallow_amplitude
+    # The snap needs the jaw to have been open past cue_open within cue_hold: not from a half-open jaw.
+    lazy = dataclasses.replace(base, cue="snap", cue_open=0.5)
+    assert onsets_of(swallow_cue(psi, fps, lazy)) == []
+    with pytest.raises(ValueError, match="unknown swallow cue 'cough'"):
+        swallow_cue(psi, fps, dataclasses.replace(base, cue="cough"))
+
+
+def test_people_swallow_at_every_kind_of_cue_they_are_drawn_from():
+    """With every cue kind allowed (data.swallow_cues), people are drawn over all of them in about equal shares,
+    each with a person's own levels and holds."""
+    every = dataclasses.replace(TRAINING_RANGES, cues=SWALLOW_CUES)
+    people = [subject_params(i, seed=0, ranges=every) for i in range(40)]
+    kinds = {p.cue for p in people}
+    assert kinds == set(SWALLOW_CUES)
+    for kind in kinds:
+        share = np.mean([p.cue == kind for p in people])
+        assert 0.1 < share < 0.45, (kind, share)
+    levels = [p.cue_level for p in people]
+    assert TRAINING_RANGES.cue_level[0] <= min(levels) < max(levels) <= TRAINING_RANGES.cue_level[1]
+    assert max(p.cue_hold for p in people) - min(p.cue_hold for p in people) > 0.2
 
 
 def test_heldout_generator_reaches_outside_the_training_ranges():
