@@ -30,10 +30,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from data.errors import InputError  # noqa: E402
 from data.pairs import LarynxSequence  # noqa: E402
 from data.synthetic_larynx import SWALLOW_CUES, TRAINING_RANGES, larynx_response, make_sequence, subject_params  # noqa: E402,E501
 from models.checkpoint import load_checkpoint, load_model  # noqa: E402
 from models.larynx_transformer import predict_tau  # noqa: E402
+from tasks.larynx_transformer import SyntheticData  # noqa: E402
 
 SEED = 0  # data=synthetic's default data seed: the people a default run trained on
 
@@ -80,21 +82,29 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", action="append", required=True, help="a larynx_transformer checkpoint")
     parser.add_argument("--cues", help="comma-separated kinds the people are drawn from (default: the first "
-                                       "checkpoint's data.swallow_cues, else all)")
+                                       "checkpoint's data.swallow_cues)")
     parser.add_argument("--subjects", type=int, default=24, help="the first n training people (data=synthetic: 24)")
     parser.add_argument("--seconds", type=float, default=60.0, help="length of each person's new take")
     parser.add_argument("--take", type=int, default=100, help="take index (data=synthetic trains on 0-5, "
                                                                "validates on 6)")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    if args.cues:
-        cues = tuple(args.cues.split(","))
-    else:
-        config = load_checkpoint(args.checkpoint[0]).get("config") or {}
-        cues = tuple(config.get("data", {}).get("swallow_cues", SWALLOW_CUES))
-    unknown = [c for c in cues if c not in SWALLOW_CUES]
+    unknown = [c for c in (args.cues or "").split(",") if c and c not in SWALLOW_CUES]
     if unknown:
         parser.error(f"--cues: unknown {', '.join(unknown)}; expected some of {', '.join(SWALLOW_CUES)}")
+    configs = {}
+    for path in args.checkpoint:
+        try:
+            configs[path] = load_checkpoint(path, "larynx_transformer").get("config") or {}
+        except InputError as e:  # names the file and what is wrong with it
+            raise SystemExit(f"error: {e}") from None
+        kind = configs[path].get("data", {}).get("kind", "synthetic")
+        if kind != "synthetic":
+            raise SystemExit(f"error: {path}: trained on data={kind}; this script scores data=synthetic's people, "
+                             "whose names a run on other data does not know")
+    # A checkpoint from before data.swallow_cues was trained on seals alone, the default (SyntheticData).
+    default = configs[args.checkpoint[0]].get("data", {}).get("swallow_cues", SyntheticData().swallow_cues)
+    cues = tuple(args.cues.split(",")) if args.cues else tuple(default)
     results = {}
     for path in args.checkpoint:
         model, _ = load_model(path, "larynx_transformer")

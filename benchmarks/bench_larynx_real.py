@@ -61,6 +61,7 @@ from data.errors import InputError  # noqa: E402
 from data.expressions import EXPRESSION_NAMES, read_expressions  # noqa: E402
 from data.pairs import LarynxSequence, save_pair  # noqa: E402
 from data.plots import figure, save_figure  # noqa: E402
+from data.synthetic_larynx import run_length  # noqa: E402
 from data.synthetic_tau import SwallowShape, swallow_profile  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
 from models.larynx_transformer import predict_tau  # noqa: E402
@@ -141,16 +142,6 @@ def fire(cue: np.ndarray, refractory: float) -> list[int]:
         if not kept or frame - kept[-1] >= refractory * FPS:
             kept.append(int(frame))
     return kept
-
-
-def run_length(condition: np.ndarray) -> np.ndarray:
-    """bool [T] or [T, C] -> int, same shape: for how many frames up to and including t it has been true."""
-    out = np.zeros(condition.shape, np.int32)
-    count = np.zeros(condition.shape[1:], np.int32)
-    for t, row in enumerate(condition):
-        count = np.where(row, count + 1, 0)
-        out[t] = count
-    return out
 
 
 def held_for(condition: np.ndarray, seconds: float) -> np.ndarray:

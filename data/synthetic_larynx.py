@@ -365,22 +365,29 @@ def seal_strength(psi: np.ndarray, params: SubjectParams) -> np.ndarray:
     return (parts @ params.signature) * (1 - psi[:, INDEX["jawOpen"]])
 
 
+def run_length(condition: np.ndarray) -> np.ndarray:
+    """bool [T] or [T, C] -> int, same shape: for how many frames up to and including t it has been true."""
+    out = np.zeros(condition.shape, np.int32)
+    count = np.zeros(condition.shape[1:], np.int32)
+    for t, row in enumerate(condition):
+        count = np.where(row, count + 1, 0)
+        out[t] = count
+    return out
+
+
 def swallow_cue(psi: np.ndarray, fps: float, params: SubjectParams) -> np.ndarray:
     """bool [T]: where the subject's swallow cue (``params.cue``, one of :data:`SWALLOW_CUES`) is on; a swallow
     can start where it switches on.  Causal."""
-    jaw = np.asarray(psi[:, INDEX["jawOpen"]], np.float64)
-    closed = jaw < params.cue_level
     if params.cue == "seal":
         return seal_strength(psi, params) >= SWALLOW_SEAL_THRESHOLD
+    jaw = np.asarray(psi[:, INDEX["jawOpen"]], np.float64)
+    closed = jaw < params.cue_level
     if params.cue == "blink":
         blink = 0.5 * (psi[:, INDEX["eyeBlink_L"]] + psi[:, INDEX["eyeBlink_R"]])
         return (blink > 0.5) & closed
     frames = max(1, int(round(params.cue_hold * fps)))
     if params.cue == "pause":
-        held = np.zeros(len(jaw), np.int64)  # frames the jaw has stayed closed, up to and including t
-        for t in range(len(jaw)):
-            held[t] = held[t - 1] + 1 if closed[t] and t > 0 else int(closed[t])
-        return held >= frames
+        return run_length(closed) >= frames
     if params.cue == "snap":
         # the largest jawOpen of frames t-frames+1..t (the window ends at t: causal)
         recent_max = maximum_filter1d(jaw, size=frames, origin=(frames - 1) // 2, mode="nearest")

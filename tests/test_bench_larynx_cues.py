@@ -48,3 +48,11 @@ def test_the_cue_kinds_are_checked(monkeypatch, capsys):
     with pytest.raises(SystemExit):
         bench.main()
     assert f"--cues: unknown cough; expected some of {', '.join(SWALLOW_CUES)}" in capsys.readouterr().err
+
+
+def test_a_checkpoint_trained_on_pairs_is_refused(monkeypatch):
+    """Its people (s0, s1, ...) are not data=synthetic's, though the names may coincide."""
+    monkeypatch.setattr(bench, "load_checkpoint", lambda path, task: {"config": {"data": {"kind": "pairs"}}})
+    monkeypatch.setattr(sys, "argv", ["bench_larynx_cues.py", "--checkpoint", "run.pt"])
+    with pytest.raises(SystemExit, match="run.pt: trained on data=pairs; this script scores data=synthetic's people"):
+        bench.main()
