@@ -1,6 +1,7 @@
 """Expression -> larynx in the regime of real capture: real expressions, minutes of pairs, held-out takes.
 
     python benchmarks/bench_larynx_real.py [--families all] [--seeds 4] [--holdout face|any]
+                                           [--swallow-spacing family|physiological|LOW,HIGH]
                                            [--out /tmp/bench_larynx_real]
 
 psi is real: the two Live Link Face takes in ``../shared/samples/livelinkface`` (``apfel.csv``,
@@ -9,7 +10,11 @@ read where they are (the script stops with a message when they are absent).  tau
 these takes, so it comes from generator families written for this benchmark, each unlike the
 project's training generator (``data.synthetic_larynx``) in lags and filters, nonlinearity, the cue
 that fires a swallow and the swallow's shape, and with per-subject gains over a wide range
-(:data:`FAMILIES`).  Every family is a causal function of psi plus white tracker noise.
+(:data:`FAMILIES`).  Every family is a causal function of psi plus white tracker noise.  Each family fires a
+swallow at nearly every cue it reads, 1.4-10.5 a minute on these takes, with refractory times of 3-5 s (the
+benchmark, ``--swallow-spacing family``); people swallow about once a minute when awake
+(:data:`PHYSIOLOGICAL_SPACING`), and ``--swallow-spacing physiological`` gives each person a refractory time of
+35-85 s and each take a random time since their last swallow, the same cues otherwise.
 
 Protocol per family and seed ``s``: one recording is the held-out take (``--holdout face``, the default:
 a Live Link Face take, ``apfel`` for even seeds and ``facial`` for odd ones, as a user trains on some
@@ -134,13 +139,18 @@ def asymmetric(x: np.ndarray, rise: float, fall: float) -> np.ndarray:
     return out
 
 
-def fire(cue: np.ndarray, refractory: float) -> list[int]:
-    """Frames where the boolean ``cue`` switches on, at least ``refractory`` seconds apart (causal)."""
+def fire(cue: np.ndarray, refractory: float, since: float | None = None) -> list[int]:
+    """Frames where the boolean ``cue`` switches on, at least ``refractory`` seconds apart (causal).
+
+    ``since``: seconds from the last swallow before the first frame to that frame (None: long ago, the first
+    onset fires)."""
     onsets = np.flatnonzero(cue[1:] & ~cue[:-1]) + 1
+    last = -math.inf if since is None else -since * FPS
     kept: list[int] = []
     for frame in onsets:
-        if not kept or frame - kept[-1] >= refractory * FPS:
+        if frame - last >= refractory * FPS:
             kept.append(int(frame))
+            last = frame
     return kept
 
 
@@ -174,14 +184,34 @@ class Person:
     lag: float       # seconds
     tau_a: float     # seconds, the family's main time constant
     mix: np.ndarray  # per-term weights
+    refractory: float | None = None  # seconds between swallows at least (None: the family's own)
+    since: float | None = None       # seconds since the last swallow at the take's first frame (None: long ago)
 
 
-def person(family: str, subject: int, seed: int, terms: int) -> Person:
+# Spontaneous swallowing in healthy younger adults: 0.98 per minute on average, 95% CI 0.67-1.42 (Bulmer et al.
+# 2021, "Evaluation of spontaneous swallow frequency in healthy people and those with, or at risk of developing,
+# dysphagia: a review", Gerontology & Geriatric Medicine 7, doi:10.1177/23337214211041801).  The families' own
+# refractory times (3-5 s) let their people swallow 1.4-10.5 times a minute on the recordings, at almost every cue.
+PHYSIOLOGICAL_SPACING = (35.0, 85.0)  # seconds: with the wait for the next cue, about one swallow a minute
+
+
+def person(family: str, subject: int, seed: int, terms: int, spacing: tuple[float, float] | None = None,
+           take: int = 0) -> Person:
+    """``subject`` of ``family`` at ``seed``.  ``spacing`` (low, high) seconds: the person's refractory time
+    drawn log-uniform in it, and, per ``take``, the time since their last swallow before the take drawn uniform
+    in [0, refractory] (None: the family's refractory, no swallow before the take)."""
     rng = np.random.default_rng([seed, sum(map(ord, family)), subject, 77])
-    return Person(gain=float(np.exp(rng.uniform(np.log(0.4), np.log(2.5)))),
-                  swallow=float(np.exp(rng.uniform(np.log(0.6), np.log(1.6)))),
-                  lag=float(rng.uniform(0.12, 0.35)), tau_a=float(rng.uniform(0.08, 0.25)),
-                  mix=rng.uniform(0.5, 1.5, terms))
+    p = Person(gain=float(np.exp(rng.uniform(np.log(0.4), np.log(2.5)))),
+               swallow=float(np.exp(rng.uniform(np.log(0.6), np.log(1.6)))),
+               lag=float(rng.uniform(0.12, 0.35)), tau_a=float(rng.uniform(0.08, 0.25)),
+               mix=rng.uniform(0.5, 1.5, terms))
+    if spacing is None:
+        return p
+    low, high = spacing
+    refractory = float(np.exp(np.random.default_rng([seed, sum(map(ord, family)), subject, 78])
+                              .uniform(np.log(low), np.log(high))))
+    since = float(np.random.default_rng([seed, sum(map(ord, family)), subject, take, 79]).uniform(0, refractory))
+    return dataclasses.replace(p, refractory=refractory, since=since)
 
 
 def family_damped(psi: np.ndarray, p: Person) -> np.ndarray:
@@ -195,7 +225,7 @@ def family_damped(psi: np.ndarray, p: Person) -> np.ndarray:
     drive = (-0.040 * p.mix[0] * jaw - 0.030 * p.mix[1] * funnel + 0.025 * p.mix[2] * smile
              + 0.020 * p.mix[3] * stretch - 0.015 * p.mix[4] * lower)
     articulation = p.gain * low_pass(lagged(drive, int(round(p.lag * FPS))), p.tau_a, order=2)
-    onsets = fire(held_for(jaw < 0.1, 0.5), 4.0)
+    onsets = fire(held_for(jaw < 0.1, 0.5), p.refractory or 4.0, p.since)
     shape = SwallowShape(phases=[0.0, 0.45, 1.0], levels=[0.0, 1.0, 0.0])
     events = swallows(len(psi), onsets, np.full(len(onsets), 0.035 * p.swallow), 0.9, shape)
     return articulation + events
@@ -212,7 +242,7 @@ def family_saturating(psi: np.ndarray, p: Person) -> np.ndarray:
     articulation = asymmetric(lagged(level, int(round(0.6 * p.lag * FPS))), 0.05, 0.2 + 2 * p.tau_a)
     window = int(0.3 * FPS)
     was_open = np.array([jaw[max(0, t - window):t + 1].max() for t in range(len(jaw))]) > 0.25
-    onsets = fire(was_open & (jaw < 0.1), 3.0)
+    onsets = fire(was_open & (jaw < 0.1), p.refractory or 3.0, p.since)
     amplitudes = 0.03 * p.swallow * (0.6 + np.array([jaw[max(0, f - window):f + 1].max() for f in onsets]))
     shape = SwallowShape(phases=[0.0, 0.3, 0.6, 1.0], levels=[0.0, 1.0, -0.5, 0.0])
     return articulation + swallows(len(psi), onsets, amplitudes, 1.3, shape)
@@ -227,7 +257,7 @@ def family_effort(psi: np.ndarray, p: Person) -> np.ndarray:
     effort = 0.012 * p.gain * np.tanh(low_pass(speed, 2.0 + 4 * p.tau_a) / 3.0)
     interaction = -0.03 * p.gain * p.mix[0] * low_pass(lagged(jaw * (0.3 + smile), int(round(p.lag * FPS))), 0.1)
     cue = (mean_lr(psi, "eyeBlink") > 0.5) & (jaw < 0.12)
-    onsets = fire(cue, 5.0)
+    onsets = fire(cue, p.refractory or 5.0, p.since)
     shape = SwallowShape(phases=[0.0, 0.2, 0.65, 1.0], levels=[0.0, 1.0, 0.9, 0.0])
     return effort + interaction + swallows(len(psi), onsets, np.full(len(onsets), 0.03 * p.swallow), 1.0, shape)
 
@@ -241,7 +271,7 @@ def family_subject(psi: np.ndarray, p: Person) -> np.ndarray:
     drive = (-0.06 * p.mix[1] * jaw ** 2 + sign * 0.04 * p.mix[2] * psi[:, K["mouthPucker"]]
              + 0.03 * p.mix[3] * mean_lr(psi, "mouthSmile") - 0.03 * p.mix[4] * psi[:, K["mouthClose"]])
     articulation = p.gain * low_pass(lagged(drive, int(round(p.lag * FPS))), p.tau_a)
-    onsets = fire(held_for(jaw < 0.12, 0.3), 3.0)
+    onsets = fire(held_for(jaw < 0.12, 0.3), p.refractory or 3.0, p.since)
     shape = SwallowShape(phases=[0.0, 0.25, 0.6, 1.0], levels=[0.0, -0.4, 1.0, 0.0])
     events = swallows(len(psi), onsets, np.full(len(onsets), 0.04 * p.swallow), 0.7 + 2 * p.tau_a, shape)
     return articulation + events
@@ -252,9 +282,14 @@ FAMILIES = {"damped": family_damped, "saturating": family_saturating, "effort": 
 TRACKER_NOISE = 0.0007  # tau units, white
 
 
-def family_tau(family: str, psi: np.ndarray, subject: int, seed: int, noise_seed: int) -> np.ndarray:
-    """tau [T] of ``subject`` in ``family`` for psi [T,55] (30 fps), with white tracker noise."""
-    p = person(family, subject, seed, terms=5)
+Spacing = tuple[float, float] | None  # person(): the swallows' spacing (seconds), None for the families' own
+
+
+def family_tau(family: str, psi: np.ndarray, subject: int, seed: int, noise_seed: int, spacing: Spacing = None
+               ) -> np.ndarray:
+    """tau [T] of ``subject`` in ``family`` for psi [T,55] (30 fps), with white tracker noise; ``noise_seed``
+    names the take (its noise and, with ``spacing``, the time since the person's last swallow)."""
+    p = person(family, subject, seed, terms=5, spacing=spacing, take=noise_seed)
     tau = FAMILIES[family](psi.astype(np.float64), p)
     rng = np.random.default_rng([seed, subject, noise_seed, 5])
     return (tau + TRACKER_NOISE * rng.standard_normal(len(tau))).astype(np.float32)
@@ -267,15 +302,24 @@ def articulation_part(family: str, psi: np.ndarray, subject: int, seed: int) -> 
     return FAMILIES[family](psi.astype(np.float64), dataclasses.replace(p, swallow=0.0))
 
 
-def swallow_part(family: str, psi: np.ndarray, subject: int, seed: int) -> np.ndarray:
-    """[T]: ``subject``'s swallows' part of tau (no tracker noise)."""
-    p = person(family, subject, seed, terms=5)
+def swallow_part(family: str, psi: np.ndarray, subject: int, seed: int, noise_seed: int = 0,
+                 spacing: Spacing = None) -> np.ndarray:
+    """[T]: ``subject``'s swallows' part of tau (no tracker noise) on the take ``noise_seed`` names."""
+    p = person(family, subject, seed, terms=5, spacing=spacing, take=noise_seed)
     return FAMILIES[family](psi.astype(np.float64), p) - articulation_part(family, psi, subject, seed)
 
 
-def swallow_frames(family: str, psi: np.ndarray, subject: int, seed: int) -> np.ndarray:
+def swallow_frames(family: str, psi: np.ndarray, subject: int, seed: int, noise_seed: int = 0,
+                   spacing: Spacing = None) -> np.ndarray:
     """bool [T]: the frames where ``subject``'s swallows move tau (:func:`swallow_part` exceeds 1e-4 UV)."""
-    return np.abs(swallow_part(family, psi, subject, seed)) > 1e-4
+    return np.abs(swallow_part(family, psi, subject, seed, noise_seed, spacing)) > 1e-4
+
+
+def count_swallows(mask: np.ndarray) -> int:
+    """Swallows in a :func:`swallow_frames` mask: its runs, those less than 2 s after the previous one's start
+    counted with it (a biphasic swallow crosses zero inside; every family's lasts at most 1.3 s and comes 3 s
+    or more after the last)."""
+    return len(fire(mask, 2.0))
 
 
 def plot_heldout(path: Path, heldout: list[LarynxSequence], masks: list[np.ndarray],
@@ -303,10 +347,10 @@ def plot_heldout(path: Path, heldout: list[LarynxSequence], masks: list[np.ndarr
 
 def split_rmse(predictions: list[np.ndarray], sequences: list[LarynxSequence], masks: list[np.ndarray]
                ) -> tuple[float, float]:
-    """RMSE over the frames inside the masks and over those outside (UV units)."""
+    """RMSE over the frames inside the masks and over those outside (UV units; NaN for a side with no frame)."""
     errors = np.concatenate([p - s.tau for p, s in zip(predictions, sequences)]).astype(np.float64)
     inside = np.concatenate(masks)
-    return float(np.sqrt(np.mean(errors[inside] ** 2))), float(np.sqrt(np.mean(errors[~inside] ** 2)))
+    return tuple(float(np.sqrt(np.mean(e ** 2))) if len(e) else math.nan for e in (errors[inside], errors[~inside]))
 
 
 # --------------------------------------------------------------------------- the pairs of one run
@@ -323,8 +367,13 @@ def heldout_name(names: list[str], seed: int, holdout: str) -> str:
     return names[seed % len(names)]
 
 
-def make_pairs(recordings: dict[str, np.ndarray], family: str, seed: int, folder: Path, holdout: str = "face"
-               ) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
+def take_seed(name: str) -> int:
+    """The ``noise_seed`` of recording ``name`` (:func:`family_tau`)."""
+    return sum(map(ord, name))
+
+
+def make_pairs(recordings: dict[str, np.ndarray], family: str, seed: int, folder: Path, holdout: str = "face",
+               spacing: Spacing = None) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
     """Write the training pair files of (family, seed) into ``folder``; returns (those pairs, the held-out
     sequences: the held-out recording with each subject's tau)."""
     names = list(recordings)
@@ -333,7 +382,7 @@ def make_pairs(recordings: dict[str, np.ndarray], family: str, seed: int, folder
     folder.mkdir(parents=True)
     train_pairs, heldout = [], []
     for name, psi in recordings.items():
-        taus = [family_tau(family, psi, subject, seed, noise_seed=sum(map(ord, name))) for subject in range(SUBJECTS)]
+        taus = [family_tau(family, psi, subject, seed, take_seed(name), spacing) for subject in range(SUBJECTS)]
         if name == held_out:
             heldout += [LarynxSequence(psi, tau, FPS, f"s{subject}", f"{name}_s{subject}", take=name)
                         for subject, tau in enumerate(taus)]
@@ -451,10 +500,10 @@ def predict_gru(model: GRUBaseline, sequences: list[LarynxSequence], index: dict
 
 
 def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str] = (), gru: bool = True,
-            holdout: str = "face") -> dict[str, float]:
+            holdout: str = "face", spacing: Spacing = None) -> dict[str, float]:
     """Held-out RMSE of every method for (family, seed)."""
     folder, run_dir = out / family / f"seed{seed}" / "pairs", out / family / f"seed{seed}" / "run"
-    train_pairs, heldout = make_pairs(recordings, family, seed, folder, holdout)
+    train_pairs, heldout = make_pairs(recordings, family, seed, folder, holdout, spacing)
     started = time.perf_counter()
     checkpoint, evaluation, task = train_default(folder, run_dir, seed, list(extra))
     transformer_seconds = time.perf_counter() - started
@@ -485,8 +534,9 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
         "gru_seconds": gru_seconds,
     }
     # Where the error lies: inside the held-out people's swallows and outside them.
-    masks = [swallow_frames(family, s.psi, int(s.subject[1:]), seed) for s in heldout]
+    masks = [swallow_frames(family, s.psi, int(s.subject[1:]), seed, take_seed(s.take), spacing) for s in heldout]
     result["swallow_fraction"] = float(np.concatenate(masks).mean())
+    result["swallows_per_minute"] = sum(map(count_swallows, masks)) / (sum(map(len, masks)) / FPS / 60)
     plot_heldout(out / family / f"seed{seed}" / "heldout.png", heldout, masks,
                  {"transformer": transformer, "ridge": ridge, **({"gru": gru_predictions} if gru else {})})
     for method, predictions in (("transformer", transformer), ("ridge", ridge), ("gru", gru_predictions),
@@ -512,13 +562,16 @@ def summarise(results: dict[str, list[dict[str, float]]]) -> str:
     lines.append("\nthe same, inside the held-out people's swallows | outside them (mean over seeds):")
     lines.append(f"{'family':<12}{'swallow frames':>16}" + "".join(f"{m:>24}" for m in ("transformer", "gru", "ridge",
                                                                                         "mean")))
+    lines[-1] = lines[-1].replace(f"{'swallow frames':>16}", f"{'swallow frames, rate':>22}")
     for family, runs in results.items():
         cells = []
         for m in ("transformer", "gru", "ridge", "mean"):
-            inside, outside = (np.mean([r[f"{m}_{part}"] for r in runs]) for part in ("in_swallows", "outside"))
+            # nanmean: a held-out take may hold no swallow at all (--swallow-spacing physiological)
+            inside, outside = (np.nanmean([r[f"{m}_{part}"] for r in runs]) for part in ("in_swallows", "outside"))
             cells.append(f"{inside:.5f} | {outside:.5f}".rjust(24))
-        share = f"{np.mean([r['swallow_fraction'] for r in runs]):.0%}"
-        lines.append(f"{family:<12}{share:>16}" + "".join(cells))
+        share = (f"{np.mean([r['swallow_fraction'] for r in runs]):.0%}, "
+                 f"{np.mean([r.get('swallows_per_minute', np.nan) for r in runs]):.1f}/min")
+        lines.append(f"{family:<12}{share:>22}" + "".join(cells))
     return "\n".join(lines)
 
 
@@ -531,6 +584,22 @@ def chosen_families(parser: argparse.ArgumentParser, text: str) -> list[str]:
     return families
 
 
+def swallow_spacing(parser: argparse.ArgumentParser, text: str) -> Spacing:
+    """``--swallow-spacing``: family (None), physiological (:data:`PHYSIOLOGICAL_SPACING`) or LOW,HIGH seconds."""
+    if text == "family":
+        return None
+    if text == "physiological":
+        return PHYSIOLOGICAL_SPACING
+    try:
+        low, high = (float(v) for v in text.split(","))
+    except ValueError:
+        low = high = math.nan
+    if not 0 < low <= high:
+        parser.error(f"--swallow-spacing: {text}; expected family, physiological or LOW,HIGH seconds with "
+                     "0 < LOW <= HIGH")
+    return low, high
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--families", default="all", help="comma-separated names of FAMILIES, or all")
@@ -541,9 +610,14 @@ def main() -> None:
     parser.add_argument("--out", default="/tmp/bench_larynx_real", help="work folder (pairs, runs, results.json)")
     parser.add_argument("--override", action="append", default=[], help="extra train.py overrides (experiments)")
     parser.add_argument("--no-gru", action="store_true", help="skip the GRU baseline (experiments)")
+    parser.add_argument("--swallow-spacing", default="family",
+                        help="family: each family's refractory time (3-5 s; the benchmark); physiological: each "
+                             f"person's drawn in {PHYSIOLOGICAL_SPACING[0]:g}-{PHYSIOLOGICAL_SPACING[1]:g} s, about "
+                             "one swallow a minute; or LOW,HIGH seconds")
     args = parser.parse_args()
     torch.set_num_threads(1)
     families = chosen_families(parser, args.families)
+    spacing = swallow_spacing(parser, args.swallow_spacing)
     recordings = load_recordings()  # first: a missing recording stops the run before anything is written
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -555,13 +629,13 @@ def main() -> None:
         log_file.flush()
 
     log(f"bench_larynx_real: families {families}, seeds {args.seeds}, holdout {args.holdout}, "
-        f"overrides {args.override}, "
+        f"overrides {args.override}, swallow spacing {args.swallow_spacing}, "
         f"load average {os.getloadavg()[0]:.2f}")
     results: dict[str, list[dict[str, float]]] = {}
     for family in families:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             results.setdefault(family, []).append(run_one(recordings, family, seed, out, log, args.override,
-                                                          not args.no_gru, args.holdout))
+                                                          not args.no_gru, args.holdout, spacing))
             (out / "results.json").write_text(json.dumps(results, indent=1))
     log("\nheld-out tau RMSE (UV units), mean +- std over seeds:\n" + summarise(results))
 

@@ -44,3 +44,65 @@ def test_split_rmse_puts_each_error_on_its_side():
     prediction = np.where(mask, 0.02, 0.005)
     inside, outside = bench.split_rmse([prediction], [sequence], [mask])
     assert abs(inside - 0.02) < 1e-9 and abs(outside - 0.005) < 1e-9
+    inside, outside = bench.split_rmse([prediction], [sequence], [np.zeros(10, bool)])  # a take without swallows
+    assert np.isnan(inside) and abs(outside - np.sqrt(np.mean(prediction ** 2))) < 1e-9
+
+
+def test_fire_waits_out_the_refractory_time_from_a_swallow_before_the_take():
+    cue = np.zeros(300, bool)
+    for start in (10, 100, 200):
+        cue[start:start + 5] = True
+    assert bench.fire(cue, 3.0) == [10, 100, 200]               # no swallow before the take
+    assert bench.fire(cue, 3.0, since=1.0) == [100, 200]        # 1 s before frame 0: frame 10 is 1.3 s later
+    assert bench.fire(cue, 3.0, since=3.0) == [10, 100, 200]
+
+
+def talking_jaw(minutes: float) -> np.ndarray:
+    """psi: the jaw open 1 s, then shut 4 s, over and over: a pause cue for every family every 5 s."""
+    frames = int(minutes * 60 * bench.FPS)
+    psi = np.zeros((frames, 55), np.float32)
+    psi[(np.arange(frames) % int(5 * bench.FPS)) < bench.FPS, bench.K["jawOpen"]] = 0.5
+    return psi
+
+
+def test_physiological_spacing_swallows_about_once_a_minute():
+    """The families' own refractory times swallow at nearly every cue (12 a minute here); with
+    PHYSIOLOGICAL_SPACING each person swallows inside the spontaneous rate's confidence interval on average
+    (0.67-1.42 a minute, the review cited beside it), on a take of 10 minutes, and the articulation is unchanged."""
+    psi = talking_jaw(10.0)
+    for family in ("damped", "saturating", "subject"):
+        own = [bench.count_swallows(bench.swallow_frames(family, psi, s, 0)) / 10 for s in range(3)]
+        assert min(own) >= 6, (family, own)
+        rates = [bench.count_swallows(bench.swallow_frames(family, psi, s, seed, 7, bench.PHYSIOLOGICAL_SPACING)) / 10
+                 for s in range(3) for seed in range(4)]
+        assert 0.67 <= np.mean(rates) <= 1.42 and max(rates) <= 1.8, (family, rates)
+        spaced = bench.family_tau(family, psi, 1, 0, 7, bench.PHYSIOLOGICAL_SPACING)
+        own_tau = bench.family_tau(family, psi, 1, 0, 7)
+        swallowing = bench.swallow_frames(family, psi, 1, 0) | bench.swallow_frames(family, psi, 1, 0, 7,
+                                                                                   bench.PHYSIOLOGICAL_SPACING)
+        np.testing.assert_allclose(spaced[~swallowing], own_tau[~swallowing], atol=1e-4)  # the masks end at 1e-4
+
+
+def test_spacing_draws_a_refractory_time_per_person_and_a_phase_per_take():
+    people = [bench.person("damped", s, 0, 5, bench.PHYSIOLOGICAL_SPACING, take=t) for s in range(3) for t in (1, 2)]
+    low, high = bench.PHYSIOLOGICAL_SPACING
+    assert all(low <= p.refractory <= high and 0 <= p.since <= p.refractory for p in people)
+    assert people[0].refractory == people[1].refractory and people[0].since != people[1].since
+    assert len({p.refractory for p in people}) == 3
+    plain = bench.person("damped", 0, 0, 5)
+    assert plain.refractory is None and plain.since is None and plain.gain == people[0].gain
+
+
+def test_swallow_spacing_option_names_what_it_expects():
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    assert bench.swallow_spacing(parser, "family") is None
+    assert bench.swallow_spacing(parser, "physiological") == bench.PHYSIOLOGICAL_SPACING
+    assert bench.swallow_spacing(parser, "20,40") == (20.0, 40.0)
+    for bad in ("40,20", "fast", "0,5"):
+        try:
+            bench.swallow_spacing(parser, bad)
+        except SystemExit:
+            continue
+        raise AssertionError(bad)
