@@ -50,6 +50,7 @@ from bench_larynx_real import (  # noqa: E402
     make_pairs,
     run_length,
     swallow_frames,
+    swallow_onsets,
     swallow_part,
 )
 
@@ -150,7 +151,7 @@ def bounds(recordings: dict[str, np.ndarray], family: str, seed: int, work: Path
     for name, psi in recordings.items():
         if name == held:
             continue
-        true = fire(swallow_frames(family, psi, 0, seed), 0.0)
+        true = swallow_onsets(swallow_frames(family, psi, 0, seed))
         gaps += np.diff(true).tolist()
         features.append(hold_features(psi))
         labels.append(onset_labels(len(psi), true))
@@ -160,7 +161,7 @@ def bounds(recordings: dict[str, np.ndarray], family: str, seed: int, work: Path
     level = float(np.concatenate(swallow_mean).mean())
     refractory = min(gaps) / FPS if gaps else 3.0  # seconds
     psi = recordings[held]
-    true = fire(swallow_frames(family, psi, 0, seed), 0.0)
+    true = swallow_onsets(swallow_frames(family, psi, 0, seed))
     articulation = {s.subject: articulation_part(family, psi, int(s.subject[1:]), seed) for s in heldout}
     swallowing = {s.subject: swallow_part(family, psi, int(s.subject[1:]), seed) for s in heldout}
     result = {"ridge": ridge, "onsets": float(len(true)),

@@ -193,14 +193,15 @@ class Person:
 # dysphagia: a review", Gerontology & Geriatric Medicine 7, doi:10.1177/23337214211041801).  The families' own
 # refractory times (3-5 s) let their people swallow 1.4-10.5 times a minute on the recordings, at almost every cue.
 PHYSIOLOGICAL_SPACING = (35.0, 85.0)  # seconds: with the wait for the next cue, about one swallow a minute
+Spacing = tuple[float, float] | None   # person(): the swallows' spacing (seconds), None for the families' own
 
 
-def person(family: str, subject: int, seed: int, terms: int, spacing: tuple[float, float] | None = None,
-           take: int = 0) -> Person:
+def person(family: str, subject: int, seed: int, terms: int, spacing: Spacing = None, take: int = 0) -> Person:
     """``subject`` of ``family`` at ``seed``.  ``spacing`` (low, high) seconds: the person's refractory time
     drawn log-uniform in it, and, per ``take``, the time since their last swallow before the take drawn uniform
     in [0, refractory] (None: the family's refractory, no swallow before the take)."""
-    rng = np.random.default_rng([seed, sum(map(ord, family)), subject, 77])
+    key = [seed, sum(map(ord, family)), subject]
+    rng = np.random.default_rng([*key, 77])
     p = Person(gain=float(np.exp(rng.uniform(np.log(0.4), np.log(2.5)))),
                swallow=float(np.exp(rng.uniform(np.log(0.6), np.log(1.6)))),
                lag=float(rng.uniform(0.12, 0.35)), tau_a=float(rng.uniform(0.08, 0.25)),
@@ -208,9 +209,8 @@ def person(family: str, subject: int, seed: int, terms: int, spacing: tuple[floa
     if spacing is None:
         return p
     low, high = spacing
-    refractory = float(np.exp(np.random.default_rng([seed, sum(map(ord, family)), subject, 78])
-                              .uniform(np.log(low), np.log(high))))
-    since = float(np.random.default_rng([seed, sum(map(ord, family)), subject, take, 79]).uniform(0, refractory))
+    refractory = float(np.exp(np.random.default_rng([*key, 78]).uniform(np.log(low), np.log(high))))
+    since = float(np.random.default_rng([*key, take, 79]).uniform(0, refractory))
     return dataclasses.replace(p, refractory=refractory, since=since)
 
 
@@ -282,8 +282,6 @@ FAMILIES = {"damped": family_damped, "saturating": family_saturating, "effort": 
 TRACKER_NOISE = 0.0007  # tau units, white
 
 
-Spacing = tuple[float, float] | None  # person(): the swallows' spacing (seconds), None for the families' own
-
 
 def family_tau(family: str, psi: np.ndarray, subject: int, seed: int, noise_seed: int, spacing: Spacing = None
                ) -> np.ndarray:
@@ -315,11 +313,11 @@ def swallow_frames(family: str, psi: np.ndarray, subject: int, seed: int, noise_
     return np.abs(swallow_part(family, psi, subject, seed, noise_seed, spacing)) > 1e-4
 
 
-def count_swallows(mask: np.ndarray) -> int:
-    """Swallows in a :func:`swallow_frames` mask: its runs, those less than 2 s after the previous one's start
-    counted with it (a biphasic swallow crosses zero inside; every family's lasts at most 1.3 s and comes 3 s
-    or more after the last)."""
-    return len(fire(mask, 2.0))
+def swallow_onsets(mask: np.ndarray) -> list[int]:
+    """The first frames of the swallows in a :func:`swallow_frames` mask: where its runs start, a run less than
+    2 s after the previous onset belonging to that swallow (a biphasic swallow crosses zero inside; every
+    family's lasts at most 1.3 s and comes 3 s or more after the last)."""
+    return fire(mask, 2.0)
 
 
 def plot_heldout(path: Path, heldout: list[LarynxSequence], masks: list[np.ndarray],
@@ -536,7 +534,7 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     # Where the error lies: inside the held-out people's swallows and outside them.
     masks = [swallow_frames(family, s.psi, int(s.subject[1:]), seed, take_seed(s.take), spacing) for s in heldout]
     result["swallow_fraction"] = float(np.concatenate(masks).mean())
-    result["swallows_per_minute"] = sum(map(count_swallows, masks)) / (sum(map(len, masks)) / FPS / 60)
+    result["swallows_per_minute"] = sum(len(swallow_onsets(m)) for m in masks) / (sum(map(len, masks)) / FPS / 60)
     plot_heldout(out / family / f"seed{seed}" / "heldout.png", heldout, masks,
                  {"transformer": transformer, "ridge": ridge, **({"gru": gru_predictions} if gru else {})})
     for method, predictions in (("transformer", transformer), ("ridge", ridge), ("gru", gru_predictions),
@@ -560,9 +558,8 @@ def summarise(results: dict[str, list[dict[str, float]]]) -> str:
         lines.append(f"{family:<12}" + "".join(cells) + f"{to_ridge.mean():>9.3f} +-{to_ridge.std():.2f}"
                      + f"{to_gru.mean():>9.3f} +-{to_gru.std():.2f}")
     lines.append("\nthe same, inside the held-out people's swallows | outside them (mean over seeds):")
-    lines.append(f"{'family':<12}{'swallow frames':>16}" + "".join(f"{m:>24}" for m in ("transformer", "gru", "ridge",
-                                                                                        "mean")))
-    lines[-1] = lines[-1].replace(f"{'swallow frames':>16}", f"{'swallow frames, rate':>22}")
+    lines.append(f"{'family':<12}{'swallow frames, rate':>22}"
+                 + "".join(f"{m:>24}" for m in ("transformer", "gru", "ridge", "mean")))
     for family, runs in results.items():
         cells = []
         for m in ("transformer", "gru", "ridge", "mean"):
@@ -570,7 +567,7 @@ def summarise(results: dict[str, list[dict[str, float]]]) -> str:
             inside, outside = (np.nanmean([r[f"{m}_{part}"] for r in runs]) for part in ("in_swallows", "outside"))
             cells.append(f"{inside:.5f} | {outside:.5f}".rjust(24))
         share = (f"{np.mean([r['swallow_fraction'] for r in runs]):.0%}, "
-                 f"{np.mean([r.get('swallows_per_minute', np.nan) for r in runs]):.1f}/min")
+                 f"{np.mean([r['swallows_per_minute'] for r in runs]):.1f}/min")
         lines.append(f"{family:<12}{share:>22}" + "".join(cells))
     return "\n".join(lines)
 
