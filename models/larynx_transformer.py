@@ -31,7 +31,9 @@ chosen for that regime on real expressions (``benchmarks/bench_larynx_real.py``;
 - ``feedback`` off: feeding the previous tau back (FaceFormer's autoregression) is available, but at
   inference that tau is the model's own prediction, a function of the psi the tokens already see; on
   takes unlike the training ones it drifts;
-- one decoder block (as FaceFormer) and dropout 0.1.
+- one decoder block (as FaceFormer) and dropout 0.1;
+- no LayerNorm before the head (``output_norm``): the head reads the residual stream as it is, so a face that
+  moves further than the training takes did can move tau further (a norm there gives every frame one size).
 
 Conventions (shapes carry a batch B and frames T):
 - psi [B,T,55]: expression weights in ``data.expressions.EXPRESSION_NAMES`` order, at
@@ -96,6 +98,10 @@ class LarynxTransformerConfig:
     # answers some poses past a level (a jaw that is shut, lips pressed), and a hinge per level lets the
     # first product express that per channel.  [] = psi enters linearly.
     input_knots: list[float] = field(default_factory=list)
+    # A LayerNorm before the head (as GPT's final norm).  It rescales every frame's features to one size, so how far
+    # the face moves past what training showed cannot move tau further; without it the head reads the residual
+    # stream as it is (real-regime benchmark, seeds 0-3: equal or better on every family, benchmarks/README.md).
+    output_norm: bool = False
 
     def __post_init__(self) -> None:
         if self.d_model % self.n_heads or (self.d_model // self.n_heads) % 2:
@@ -465,7 +471,7 @@ class LarynxTransformer(nn.Module):
         # a gain is a product, which the additive style of the tokens can only approximate); 0 = the average.
         self.style_gain = nn.Embedding(len(self.subjects) + 1, 1)
         self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layers))
-        self.ln_out = nn.LayerNorm(d)
+        self.ln_out = nn.LayerNorm(d) if cfg.output_norm else None
         self.head = nn.Linear(d, 1)
         nn.init.zeros_(self.style.weight)
         nn.init.zeros_(self.style_gain.weight)
@@ -531,7 +537,8 @@ class LarynxTransformer(nn.Module):
 
     def _readout(self, x: Tensor, subject: Tensor | None) -> Tensor:
         """Hidden states [B,T,d] -> tau [B,T] in UV units."""
-        return self.to_tau(self.head(self.ln_out(x))[..., 0] * self.output_gain(x.shape[0], subject))
+        x = x if self.ln_out is None else self.ln_out(x)
+        return self.to_tau(self.head(x)[..., 0] * self.output_gain(x.shape[0], subject))
 
     # ------------------------------------------------------------------ teacher forcing
 
@@ -644,7 +651,8 @@ class FrameWeights:
             self.encoder_norm = norm.normalized_shape, norm.weight.detach(), norm.bias.detach(), norm.eps
             self.motion = model.motion.weight[:, 0].detach() if model.feedback else None
             self.blocks = [BlockFrameWeights(block) for block in model.blocks]
-            self.out_eps, self.head = model.ln_out.eps, _linear(model.head, model.ln_out)
+            self.out_eps = None if model.ln_out is None else model.ln_out.eps
+            self.head = _linear(model.head, model.ln_out)
 
 
 class BlockFrameWeights:
@@ -792,7 +800,8 @@ class LarynxStream:
             hidden = F.gelu(torch.addmm(block.mlp_in[0], _normalise(x, block.mlp_eps), block.mlp_in[1]),
                             approximate="tanh")
             x = x + torch.addmm(block.mlp_out[0], hidden, block.mlp_out[1])
-        y = torch.addmm(weights.head[0], _normalise(x, weights.out_eps), weights.head[1]) * self.gain  # [B,1]
+        x = x if weights.out_eps is None else _normalise(x, weights.out_eps)
+        y = torch.addmm(weights.head[0], x, weights.head[1]) * self.gain  # [B,1]
         self.previous = y
         self.position += 1
         return y[:, 0]
@@ -833,11 +842,15 @@ def tensor_bytes(root, exclude: tuple = ()) -> int:
     return total
 
 
+# The sizes of checkpoints saved before these options existed: no hinges, and a LayerNorm before the head.
+SIZES_BEFORE_OPTIONS = {"input_knots": [], "output_norm": True}
+
+
 def build_model(model_config: dict) -> LarynxTransformer:
     """The model of a checkpoint's ``model_config``: exactly the fields of :class:`LarynxTransformerConfig`
     (the sizes) and of :class:`LarynxDataFields` (from the training data); missing or unknown keys, or
     sizes the config rejects, are a ValueError."""
-    model_config = {"input_knots": [], **model_config}  # checkpoints from before the hinges
+    model_config = {**SIZES_BEFORE_OPTIONS, **model_config}
     missing = [k for k in SIZES + DATA_KEYS if k not in model_config]
     unknown = sorted(set(model_config) - set(SIZES) - set(DATA_KEYS))
     if missing or unknown:
@@ -865,16 +878,19 @@ def transfer_weights(model: LarynxTransformer, source: dict[str, Tensor]) -> Non
     normalised tau, and ``model`` keeps its own data's ``tau_mean`` and ``tau_scale``.
 
     Raises:
-        ValueError: a tensor missing from ``source`` or of another shape (other sizes), naming it.
+        ValueError: a tensor missing from ``source``, one ``model`` has not, or one of another shape (other
+        sizes), naming it.
     """
     target = model.state_dict()
     missing = [k for k in target if k not in source]
+    extra = [k for k in source if k not in target]  # a module the model has not (a LayerNorm before the head)
     other = [f"{k} {tuple(source[k].shape)} (expected {tuple(v.shape)})" for k, v in target.items()
              if k in source and k not in STYLE_TABLES and source[k].shape != v.shape]
-    if missing or other:
+    if missing or extra or other:
         raise ValueError("the weights are of another model layout: " + "; ".join(
-            ([f"missing {', '.join(missing)}"] if missing else []) + ([f"other sizes: {', '.join(other)}"]
-                                                                     if other else [])))
+            ([f"missing {', '.join(missing)}"] if missing else []) + ([f"not in this model {', '.join(extra)}"]
+                                                                     if extra else [])
+            + ([f"other sizes: {', '.join(other)}"] if other else [])))
     merged = {k: source[k].to(v.dtype) for k, v in target.items()}
     for name in STYLE_TABLES:
         merged[name] = source[name][:1].to(target[name].dtype).expand_as(target[name]).clone()

@@ -69,7 +69,13 @@ from data.synthetic_larynx import (
     split_subjects,
 )
 from models.checkpoint import load_checkpoint
-from models.larynx_transformer import SIZES, LarynxTransformerConfig, build_model, transfer_weights
+from models.larynx_transformer import (
+    SIZES,
+    SIZES_BEFORE_OPTIONS,
+    LarynxTransformerConfig,
+    build_model,
+    transfer_weights,
+)
 from models.pretrained import default_checkpoint
 
 # --------------------------------------------------------------------------- configs
@@ -342,7 +348,7 @@ def warm_start(model, init_from: str) -> None:
     try:
         transfer_weights(model, state["model"])
     except ValueError as e:
-        sizes = state["model_config"]
+        sizes = {**SIZES_BEFORE_OPTIONS, **state["model_config"]}
         differ = [f"model.{k}={sizes[k]}" for k in SIZES if k in sizes and sizes[k] != model.config[k]]
         hint = f"; it was trained with {', '.join(differ)}" if differ else ""
         raise InputError(f"task.init_from={init_from}: {path} does not fit this model: {e}{hint}") from None

@@ -69,11 +69,12 @@ def random_model(**overrides):
 # --------------------------------------------------------------------------- streaming decoder
 
 
-@pytest.mark.parametrize("cross_window, feedback, knots", [(1, False, []), (3, False, []), (1, True, []),
-                                                           (3, True, []), (1, False, [0.1, 0.4])])
-def test_cached_decoding_matches_full_recomputation(cross_window, feedback, knots):
+@pytest.mark.parametrize("cross_window, feedback, knots, output_norm",
+                         [(1, False, [], False), (3, False, [], False), (1, True, [], False), (3, True, [], False),
+                          (1, False, [0.1, 0.4], False), (1, False, [], True), (3, True, [], True)])
+def test_cached_decoding_matches_full_recomputation(cross_window, feedback, knots, output_norm):
     model = random_model(cross_window=cross_window, subjects=["anna", "ben"], use_eta=True, feedback=feedback,
-                         input_knots=knots)
+                         input_knots=knots, output_norm=output_norm)
     psi = torch.rand(2, 70, 55, generator=torch.Generator().manual_seed(1))  # 70 frames: the 16-frame window wraps
     subject, eta = torch.tensor([0, 2]), torch.tensor([1.0, 1.15])
     reference = model.generate_uncached(psi, subject, eta) / model.tau_scale
@@ -104,6 +105,29 @@ def test_every_parameter_gets_a_gradient(cross_window, feedback, use_eta):
 
     dead = [name for name, p in model.named_parameters() if p.grad is None or not (rows(p).amax(1) > 0).all()]
     assert not dead, dead
+
+
+def test_the_head_reads_how_far_the_stream_goes_without_the_output_norm():
+    """model.output_norm=false (the default): tau's deviation from the head's bias grows in proportion with the
+    residual stream, so a face moving further than in training can move tau further; with the LayerNorm (as in
+    checkpoints from before the option, which load with it) twice the stream gives the same tau."""
+    from models.larynx_transformer import LarynxTransformerConfig
+
+    assert LarynxTransformerConfig().output_norm is False
+    stream = torch.randn(2, 30, TINY_MODEL["d_model"], generator=torch.Generator().manual_seed(3))
+    for output_norm in (False, True):
+        model = random_model(output_norm=output_norm)
+        assert (model.ln_out is None) == (not output_norm)
+        with torch.no_grad():
+            bias = model.to_tau(model.head.bias * model.output_gain(2, None))
+            once, twice = model._readout(stream, None) - bias, model._readout(2 * stream, None) - bias
+        if output_norm:
+            assert (twice - once).abs().max() < 1e-4 * once.abs().max()
+        else:
+            assert torch.allclose(twice, 2 * once, rtol=1e-5, atol=1e-9)
+            assert once.abs().max() > 1e-3  # not a comparison between zeros
+    old = {**TINY_MODEL, **DATA_FIELDS}  # a checkpoint's model_config from before output_norm
+    assert build_model(old).ln_out is not None
 
 
 def test_hinge_features_bend_each_channel_at_its_knots():
@@ -782,6 +806,13 @@ def test_warm_start_refuses_what_does_not_fit(tmp_path):
     with pytest.raises(InputError, match=r"wider.pt does not fit this model: .*blocks.0.mlp.0.weight \(48, 32\) "
                                          r"\(expected \(64, 32\)\).*it was trained with model.d_ff=48"):
         linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'wider.pt'}"])
+    # A checkpoint from before model.output_norm (no such key: it has the LayerNorm before the head).
+    normed = {k: v for k, v in plain.model_config().items() if k != "output_norm"}
+    save_checkpoint(tmp_path / "normed.pt", {"task": "larynx_transformer", "model_config": normed,
+                                             "model": build_model(normed).state_dict()})
+    with pytest.raises(InputError, match=r"normed.pt does not fit this model: .*not in this model ln_out.weight, "
+                                         r"ln_out.bias.*it was trained with model.output_norm=True"):
+        linear_pair_task(tmp_path, [f"task.init_from={tmp_path / 'normed.pt'}"])
     save_checkpoint(tmp_path / "h2n.pt", {"task": "head2neck", "model_config": {}, "model": {}})
     with pytest.raises(InputError,
                        match="task.init_from=.*h2n.pt: checkpoint of task 'head2neck', expected 'larynx_transformer'"):
