@@ -886,11 +886,10 @@ def transfer_weights(model: LarynxTransformer, source: dict[str, Tensor]) -> Non
     extra = [k for k in source if k not in target]  # a module the model has not (a LayerNorm before the head)
     other = [f"{k} {tuple(source[k].shape)} (expected {tuple(v.shape)})" for k, v in target.items()
              if k in source and k not in STYLE_TABLES and source[k].shape != v.shape]
-    if missing or extra or other:
-        raise ValueError("the weights are of another model layout: " + "; ".join(
-            ([f"missing {', '.join(missing)}"] if missing else []) + ([f"not in this model {', '.join(extra)}"]
-                                                                     if extra else [])
-            + ([f"other sizes: {', '.join(other)}"] if other else [])))
+    problems = [f"{what} {', '.join(names)}" for what, names in
+                (("missing", missing), ("not in this model", extra), ("other sizes:", other)) if names]
+    if problems:
+        raise ValueError("the weights are of another model layout: " + "; ".join(problems))
     merged = {k: source[k].to(v.dtype) for k, v in target.items()}
     for name in STYLE_TABLES:
         merged[name] = source[name][:1].to(target[name].dtype).expand_as(target[name]).clone()
