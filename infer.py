@@ -16,14 +16,14 @@ HACK-named CSV, header-less 55-column CSV, or ``.npy`` with ``fps=``), resamples
   CSV from ``python -m motion.swallow``) inserted at ``swallow_at`` seconds (the demo take: at 6.2 s),
   blended as ``swallow_playback`` says;
 - theta: the recording's head rotation (``HeadYaw, HeadPitch, HeadRoll``; conventions and options in
-  ``motion/head2neck.py``) through the head -> cervical spine model (``head2neck``: ``default``,
+  ``motion/head2neck/__init__.py``) through the head -> cervical spine model (``head2neck``: ``default``,
   ``none`` or a checkpoint) in the bone frames of the rig; without recorded head rotation the neck rests.
 
 Everything goes into one folder, ``out_dir`` (default ``runs/infer/<time>/``), written whole or not at
 all (a staging folder renamed into place): ``params.npz`` (``data.params``: the file ``motion.retarget``
 and the exporters read), ``params.csv`` (a row per frame), ``plot.png`` (tau and eta with the swallows,
 the joints' anatomical angles), ``meshes/frame_00000.ply ...`` with ``meshes=true``, ``anim.glb``
-(``data.gltf``: Blender, Unity, three.js) and ``preview.mp4`` (``motion.preview``) with
+(``scene.gltf``: Blender, Unity, three.js) and ``preview.mp4`` (``scene.preview``) with
 ``export=[glb,mp4]``.  A folder of takes gives one subfolder per take, a summary table (``summary.csv``),
 and goes on past a take that fails, naming its reason.
 """
@@ -45,26 +45,26 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from data.characters import GIRAFFE_TAG, load_character
-from data.cli import as_list, register_config, run_cli, to_dataclass
+from base.cli import as_list, register_config, run_cli, to_dataclass
+from base.errors import InputError
+from base.files import write_csv
+from base.plots import figure, save_figure
+from base.progress import progress_bar
 from data.demo_take import DEMO_SOURCE, SWALLOW_ONSET, demo_take
-from data.errors import InputError
 from data.expressions import EXPRESSION_NAMES, ExpressionTrack, arkit_name, read_expressions
-from data.files import write_csv
-from data.gltf import export_glb
 from data.mesh_io import write_obj, write_ply
 from data.params import AnimationParams, load_params, rig_checksum, save_params
-from data.plots import figure, save_figure
-from data.progress import progress_bar
 from models.checkpoint import load_model
 from models.head2neck import predict_theta
-from models.larynx_transformer import predict_tau
+from models.larynx import predict_tau
 from models.pretrained import default_checkpoint, pretrained_path, read_manifest
 from models.rig import HeadNeckModel
 from motion.head2neck import head_rotations_from_ypr, load_head2neck, recentered
-from motion.preview import Panel, anatomical_degrees, write_preview
 from motion.retarget import default_gains, retarget_params
 from motion.swallow import PlaybackConfig, insert_swallows, read_template
+from scene.characters import GIRAFFE_TAG, load_character
+from scene.gltf import export_glb
+from scene.preview import Panel, anatomical_degrees, write_preview
 
 MESH_FORMATS = ("ply", "obj")
 EXPORTS = ("glb", "mp4")
@@ -93,7 +93,7 @@ class InferConfig:
     swallow_duration_scale: Any = 1.0  # one value or one per onset
     swallow_amplitude_scale: Any = 1.0
     swallow_playback: PlaybackConfig = field(default_factory=PlaybackConfig)
-    # head rotation -> cervical theta (conventions in motion/head2neck.py)
+    # head rotation -> cervical theta (conventions in motion/head2neck/__init__.py)
     head2neck: str = "default"         # default (shipped) | none (the neck rests) | a checkpoint
     head_units: str = "rad"            # rad | deg | halfturn
     yaw_sign: float = 1.0

@@ -66,10 +66,10 @@ from omegaconf import DictConfig, OmegaConf
 from torch.nn.parallel import DistributedDataParallel
 
 import tasks
-from data.cli import compose_config, to_dataclass
-from data.errors import InputError
-from data.files import write_text
-from data.progress import progress_bar
+from base.cli import compose_config, to_dataclass
+from base.errors import InputError
+from base.files import write_text
+from base.progress import progress_bar
 from models.checkpoint import load_checkpoint, load_state, save_checkpoint
 
 # Config keys a resumed run may change (configs/trainer/*.yaml): they steer the run, not what it computes.
@@ -558,7 +558,7 @@ def main(cfg: DictConfig) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         fit(cfg, run_dir)
-    except InputError as e:  # bad data or a refused resume: the message, status 2, no traceback (data.cli)
+    except InputError as e:  # bad data or a refused resume: the message, status 2, no traceback (base.cli)
         print(f"error: {e}", file=sys.stderr)
         if not cfg.resume:
             discard_unstarted_run(run_dir)
@@ -584,7 +584,7 @@ def discard_unstarted_run(run_dir: Path) -> None:
 
 def check_command_line(argv: list[str]) -> None:
     """Compose the config once before hydra runs it, so an unknown key, a wrong type or a missing value is
-    one line and exit status 2 (data.cli) rather than hydra's report.  Sweeps (``-m``) and hydra's own
+    one line and exit status 2 (base.cli) rather than hydra's report.  Sweeps (``-m``) and hydra's own
     flags and keys are left to hydra; a sweep under torchrun is refused."""
     if int(os.environ.get("WORLD_SIZE", 1)) > 1 and any(arg in ("-m", "--multirun") for arg in argv):
         print("error: -m (a hydra sweep) under torchrun: run one torchrun per sweep job, or sweep with the "

@@ -5,7 +5,7 @@
 On a synthetic 30 fps clip (nods, turns and tilts at every joint, speech-like mouth shapes, a sliding
 larynx): the time to build and write the GLB (and to check it against the rig at every frame), its
 size and morph-target counts; then preview frames per second (pose + render + strip + mp4 encoding,
-through ``motion.preview.write_preview``) at 256x256 and 512x512 for one character and at 256x256 side
+through ``scene.preview.write_preview``) at 256x256 and 512x512 for one character and at 256x256 side
 by side (the second character: ``--second-rig``, else the same rig again).  Real time is 30 frames/s.
 ``--docs`` also writes ``docs/preview_human.png`` (frame 2.0 s of the clip, three-quarter view, 256);
 ``--docs-only`` writes just that.
@@ -26,11 +26,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from timing import frames_per_second  # noqa: E402
 
-from data.files import atomic_path  # noqa: E402
-from data.gltf import export_glb  # noqa: E402
+from base.files import atomic_path  # noqa: E402
 from data.params import AnimationParams, rig_checksum  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
-from motion.preview import Panel, preview_image, write_preview  # noqa: E402
+from scene.gltf import export_glb  # noqa: E402
+from scene.preview import Panel, preview_image, write_preview  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 MOUTH = ("jawOpen", "mouthFunnel", "mouthSmile_L", "mouthSmile_R", "mouthClose")

@@ -39,9 +39,9 @@ sys.path.insert(0, str(REPO / "tests"))
 from timing import frames_per_second  # noqa: E402
 
 from data.cervical_prior import PriorConfig, head_rotations, sample_sequences  # noqa: E402
+from data.joint_limits import within_limits  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
 from models.head2neck import Head2NeckConfig, Head2NeckMLP, head_error_deg, predict_theta  # noqa: E402
-from models.joint_limits import within_limits  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
 
 METHODS = ("model_raw", "model", "uniform", "rom", "invivo")
@@ -74,7 +74,7 @@ def errors(model, rig, truth: torch.Tensor) -> dict[str, torch.Tensor]:
     """Per-joint mean angular error (deg) [J] of each method on anatomical poses ``truth`` [F,8,3]."""
     from test_head2neck import split_corrected
 
-    from models.rotations import axis_angle_to_matrix, relative_angle
+    from base.rotations import axis_angle_to_matrix, relative_angle
 
     head = head_rotations(rig, truth)
     with torch.no_grad():
@@ -113,7 +113,7 @@ def accuracy(args) -> None:
 
 def training(args) -> None:
     import train
-    from data.cli import compose_config
+    from base.cli import compose_config
 
     cfg = compose_config("train", ["task=head2neck"])
     with tempfile.TemporaryDirectory() as run_dir:

@@ -55,7 +55,7 @@ def main() -> None:
     parser.add_argument("--head2neck", default="default")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    from data.cli import compose_config, to_dataclass
+    from base.cli import compose_config, to_dataclass
     from infer import load_models, run_take
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -30,11 +30,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from data.errors import InputError  # noqa: E402
+from base.errors import InputError  # noqa: E402
 from data.pairs import LarynxSequence  # noqa: E402
 from data.synthetic_larynx import SWALLOW_CUES, TRAINING_RANGES, larynx_response, make_sequence, subject_params  # noqa: E402,E501
 from models.checkpoint import load_checkpoint, load_model  # noqa: E402
-from models.larynx_transformer import predict_tau  # noqa: E402
+from models.larynx import predict_tau  # noqa: E402
 from tasks.larynx_transformer import SyntheticData  # noqa: E402
 
 SEED = 0  # data=synthetic's default data seed: the people a default run trained on

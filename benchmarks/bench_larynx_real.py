@@ -61,15 +61,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import tasks  # noqa: E402,F401  (registers the config schemas)
 import train  # noqa: E402
-from data.cli import compose_config  # noqa: E402
-from data.errors import InputError  # noqa: E402
+from base.cli import compose_config  # noqa: E402
+from base.errors import InputError  # noqa: E402
+from base.plots import figure, save_figure  # noqa: E402
 from data.expressions import EXPRESSION_NAMES, read_expressions  # noqa: E402
 from data.pairs import LarynxSequence, save_pair  # noqa: E402
-from data.plots import figure, save_figure  # noqa: E402
 from data.synthetic_larynx import run_length  # noqa: E402
 from data.synthetic_tau import SwallowShape, swallow_profile  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
-from models.larynx_transformer import predict_tau  # noqa: E402
+from models.larynx import predict_tau  # noqa: E402
 from tasks.larynx_transformer import Task, fit_ridge, rmse, window_features  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]

@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from timing import frames_per_second  # noqa: E402
 
 from models.checkpoint import load_model  # noqa: E402
-from models.larynx_transformer import (  # noqa: E402
+from models.larynx import (  # noqa: E402
     LarynxDataFields,
     LarynxTransformer,
     LarynxTransformerConfig,

@@ -26,13 +26,13 @@ sys.path[:0] = [str(REPO), str(REPO / "benchmarks")]
 
 from timing import frames_per_second  # noqa: E402
 
+from base.rotations import euler_to_axis_angle  # noqa: E402
 from data.assets import RigData, convert  # noqa: E402
-from data.characters import build_giraffe  # noqa: E402
+from data.joint_limits import euler_limits  # noqa: E402
 from data.params import AnimationParams, rig_checksum  # noqa: E402
-from models.joint_limits import euler_limits  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
-from models.rotations import euler_to_axis_angle  # noqa: E402
 from motion.retarget import GIRAFFE_GAINS, pose, retarget_params, supports_skinning  # noqa: E402
+from scene.characters import build_giraffe  # noqa: E402
 
 
 def source_rig(args) -> tuple[RigData, str]:

@@ -5,7 +5,7 @@
         [--quiet-wait 60] [--no-release]
 
 Batch of 64 frames, all 55 expressions active, random poses and tau, CPU, ``HeadNeckModel.forward``
-(``models/rig.py``) against the release's algorithm (``tests/reference_hack.py``: a dense 4x4 blended per
+(``models/rig/__init__.py``) against the release's algorithm (``tests/reference_hack.py``: a dense 4x4 blended per
 vertex, float32) on the same inputs in the same run, under three conditions:
 
 - idle: nothing started beside it.  The machine may be shared: the CPU time other processes took during

@@ -3,7 +3,7 @@
     python benchmarks/bench_tracker.py [--rig /tmp/hack_rig.npz] [--threads 1] [--frames 240] [--seeds 1]
         [--sections speed,slide,conditions,ablations]
 
-Sequences (``data.normal_sequences``): 256x256 at 0.08 cm/px, 30 fps, noise 0.05, 8-bit quantised, swallows
+Sequences (``scene.normal_sequences``): 256x256 at 0.08 cm/px, 30 fps, noise 0.05, 8-bit quantised, swallows
 (40 per minute), speech-like tau motion; per condition head motion (degrees per anatomical axis), the face
 replaying a real recording (the Live Link Face samples in ``../shared/samples/livelinkface``, the HACK
 release's ``bsw_list.npy`` at 30 fps; conditions whose recording is absent are skipped), perspective, blur.
@@ -39,9 +39,7 @@ sys.path.insert(0, str(REPO))
 
 from timing import frames_per_second  # noqa: E402
 
-from data.normal_sequences import SequenceConfig, head_motion, make_sequence, tau_r2  # noqa: E402
 from data.normals import encode_normals, stored_to_unit  # noqa: E402
-from data.render import NeckRenderer, render_normals  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
 from motion.track import (  # noqa: E402
     BandpassConfig,
@@ -55,6 +53,8 @@ from motion.track import (  # noqa: E402
     track_sequence,
 )
 from motion.track.kernel import with_window  # noqa: E402
+from scene.normal_sequences import SequenceConfig, head_motion, make_sequence, tau_r2  # noqa: E402
+from scene.render import NeckRenderer, render_normals  # noqa: E402
 
 SHARED = REPO.parent / "shared"
 LIVELINK = SHARED / "samples" / "livelinkface"

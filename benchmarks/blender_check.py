@@ -52,8 +52,8 @@ def write_reference(args: argparse.Namespace) -> None:
     sys.path.insert(0, str(REPO))
     import torch
 
-    from data.gltf import METRES_PER_CM, resolve_rig, rig_vertices
     from data.params import load_params
+    from scene.gltf import METRES_PER_CM, resolve_rig, rig_vertices
 
     torch.set_num_threads(1)
     params = load_params(args.params)

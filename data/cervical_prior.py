@@ -4,8 +4,8 @@ loader of real ones.
 HACK drives its 8 cervical joints from one head orientation; without motion capture of the spine we learn
 that mapping from this generator.  Angles are Euler angles per joint in its anatomical frame
 (``HeadNeckModel.to_anatomical``; the rig takes ``rig.from_anatomical(theta)``), ``R = Rz(az) Ry(ay) Rx(ax)``
-(``models.rotations``): ``ax`` flexion +, ``ay`` axial rotation + to the subject's left, ``az`` lateral bending
-+ to the subject's right; joints root to head (``models.joint_limits.JOINT_LEVELS``: C7-T1 ... O-C1).  Head
+(``base.rotations``): ``ax`` flexion +, ``ay`` axial rotation + to the subject's left, ``az`` lateral bending
++ to the subject's right; joints root to head (``data.joint_limits.JOINT_LEVELS``: C7-T1 ... O-C1).  Head
 orientation follows by forward kinematics (``HeadNeckModel.head_rotation``).
 
 Sources (each constant below names the one it comes from; "assumption" where the literature gave us none):
@@ -34,7 +34,7 @@ Sources (each constant below names the one it comes from; "assumption" where the
 - [L14] Lan et al., "The shift of segmental contribution ratio in patients with herniated disc during cervical
   lateral bending", BMC Musculoskelet Disord 15:273, 2014: healthy C2/3..C6/7 lateral bending 7.66 +- 2.37,
   8.37 +- 2.11, 8.91 +- 3.22, 7.19 +- 2.29, 6.31 +- 2.11 deg.
-- [WP90] / [P88]: the published segmental ranges of ``models.joint_limits.RANGES_DEG`` (White & Panjabi 1990;
+- [WP90] / [P88]: the published segmental ranges of ``data.joint_limits.RANGES_DEG`` (White & Panjabi 1990;
   Panjabi et al. 1988), the rig's joint limits.
 - [C06] Cook et al., J Manipulative Physiol Ther 29:570-575, 2006 (systematic review): below C2, bending and
   rotation couple to the same side in every 3D study; the upper cervical coupling direction varies.
@@ -90,7 +90,7 @@ Generating process
      rotation so the face stays forward (assumption; [C06]: the upper direction varies between studies).
    Per person each ratio is scaled by ``LogNormal(0, coupling_sigma)`` ([Z21]: CV 0.24-0.32; sigma 0.3).
 5. Each angle saturates smoothly, ``x / (1 + |x/R|^8)^(1/8)``, at the person's range R in its direction, so
-   every pose is inside the published limits (``models.joint_limits.within_limits``).
+   every pose is inside the published limits (``data.joint_limits.within_limits``).
 
 ``PriorConfig`` also shifts the process (for tests of a model on a prior other than its training one):
 ``head_range_scale`` scales T, ``size_dependence`` scales ``s0 - F`` (0 = the same split at every size),
@@ -109,10 +109,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data.errors import InputError
-from data.files import load_npy
-from models.joint_limits import JOINT_LEVELS, RANGES_DEG
-from models.rotations import euler_to_axis_angle
+from base.errors import InputError
+from base.files import load_npy
+from base.rotations import euler_to_axis_angle
+from data.joint_limits import JOINT_LEVELS, RANGES_DEG
 
 NUM_JOINTS = len(JOINT_LEVELS)
 SUBAXIAL = slice(0, 6)          # C7-T1 .. C2-C3

@@ -30,10 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import InputError, require_file
-from data.files import load_npy
-from data.tables import CsvTable
-from data.timebase import resample_uniform, row_name, time_axis
+from base.errors import InputError, require_file
+from base.files import load_npy
+from base.tables import CsvTable
+from base.timebase import resample_uniform, row_name, time_axis
 
 EXPRESSION_NAMES: tuple[str, ...] = (
     "browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R",

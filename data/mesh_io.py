@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import InputError, require_file
-from data.files import atomic_path
+from base.errors import InputError, require_file
+from base.files import atomic_path
 
 
 @dataclass

@@ -1,12 +1,12 @@
 """Normal maps: the one RGB encoding of camera-space normals, and normal-map image files.
 
-Conventions owned here (the renderer ``data.render``, the tracker ``motion.track`` and the sequence
-generator ``data.normal_sequences`` use them):
+Conventions owned here (the renderer ``scene.render``, the tracker ``motion.track`` and the sequence
+generator ``scene.normal_sequences`` use them):
 
 - RGB encoding of a normal map: ``rgb = (n + 1) / 2`` per channel (R = n_x,
   G = n_y, B = n_z), so [-1, 1] -> [0, 1]; background pixels (mask false)
   hold n = 0 and are written black (rgb 0).
-- Camera space: x right, y up, z towards the camera (``data.render`` owns the camera).
+- Camera space: x right, y up, z towards the camera (``scene.render`` owns the camera).
 - On disk a normal map is an RGB image: PNG (8 or 16 bit, also TIFF) holding the encoding (n + 1) / 2
   scaled to the integer range, background black; or EXR holding float32 raw normals n in [-1, 1],
   background 0.  EXR goes through the OpenEXR package (a dependency: the OpenCV wheels cannot read EXR).
@@ -22,8 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from data.errors import InputError, require_file
-from data.files import atomic_path
+from base.errors import InputError, require_file
+from base.files import atomic_path
 
 
 def encode_normals(normals):

@@ -1,7 +1,7 @@
 """The per-frame animation file ``params.npz``: what drives a rig, frame by frame.
 
 ``infer.py`` writes it, ``motion.retarget`` reads it and writes one for the target character, and the
-exporters (``data.gltf``, ``motion.preview``) read it.  Arrays (strings as 0-d unicode arrays):
+exporters (``scene.gltf``, ``scene.preview``) read it.  Arrays (strings as 0-d unicode arrays):
 
 - ``time [T]`` float64 seconds from 0, strictly increasing; ``fps`` the rate (0-d float64);
 - ``psi [T,55]`` expression weights (HACK names in sorted order, ``expression_names``);
@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from base.errors import InputError, require_file
+from base.files import save_npz
 from data.assets import RigData
-from data.errors import InputError, require_file
-from data.files import save_npz
 
 ARRAY_KEYS = ("time", "fps", "psi", "tau", "eta", "theta", "head_rotation")
 TEXT_KEYS = ("rig", "rig_checksum", "producers")

@@ -5,7 +5,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from data.errors import InputError
+from base.errors import InputError
 
 
 def split_by_file(items: Sequence, val_fraction: float, seed: int, what: str = "file") -> tuple[list, list]:

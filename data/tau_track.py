@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import InputError
-from data.files import load_npy, save_npy, write_csv
-from data.tables import CsvTable
-from data.timebase import check_increasing, estimate_fps
+from base.errors import InputError
+from base.files import load_npy, save_npy, write_csv
+from base.tables import CsvTable
+from base.timebase import check_increasing, estimate_fps
 
 
 @dataclass

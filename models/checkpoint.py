@@ -14,13 +14,13 @@ import pickle
 import torch
 from torch import nn
 
-from data.errors import InputError, require_file
-from data.files import atomic_path
-from models import head2neck, larynx_transformer
+from base.errors import InputError, require_file
+from base.files import atomic_path
+from models import head2neck, larynx
 
 # What rebuilds each task's model from its checkpoint's ``model_config``.
 MODEL_BUILDERS = {
-    "larynx_transformer": larynx_transformer.build_model,
+    "larynx_transformer": larynx.build_model,
     "head2neck": head2neck.build_model,
 }
 

@@ -17,7 +17,7 @@ shares that sum to 1 over the joints: ``theta_j = s_j * (C_j^T v)`` (component-w
 - *uniform*: ``s_j = 1/8`` on every axis.  Every joint then rotates by
   ``v / 8`` in the world, so the chain reproduces H exactly.
 - *rom*: each joint's share of the chain's range of motion on that axis
-  (``models.joint_limits.range_of_motion_shares``: flexion or extension by the
+  (``data.joint_limits.range_of_motion_shares``: flexion or extension by the
   sign of the x component, axial rotation for y, lateral bending for z).
 - *invivo*: the in-vivo prior's measured shares (``data.cervical_prior``),
   which change with the size of the motion (:func:`invivo_shares`): a small
@@ -28,7 +28,7 @@ approximately; :func:`correct_to_head` makes them exact.
 
 Model (:class:`Head2NeckMLP`, sizes in :class:`Head2NeckConfig`): an MLP (2
 hidden layers of 512 by default) on the 6D representation of H
-(``models.rotations.matrix_to_rot6d``, minus the identity's, times
+(``base.rotations.matrix_to_rot6d``, minus the identity's, times
 ``input_scale``) whose output is added to a split,
 ``theta = split(H) + residual_scale * MLP(H)`` (``base``: the in-vivo split by
 default); the last layer starts at zero, so an untrained model is that
@@ -64,11 +64,9 @@ from dataclasses import dataclass, field, fields
 import torch
 from torch import nn
 
-from data.cervical_prior import AXIAL, EXT, FLEX, FULL_SHARES, HEAD_RANGE_DEG, LAT, START_SHARES
-from data.cli import register_config
-from data.errors import InputError
-from models.joint_limits import JOINT_LEVELS, euler_limits, range_of_motion_shares
-from models.rotations import (
+from base.cli import register_config
+from base.errors import InputError
+from base.rotations import (
     axis_angle_to_euler,
     axis_angle_to_quaternion,
     euler_to_axis_angle,
@@ -81,6 +79,8 @@ from models.rotations import (
     quaternion_to_matrix,
     relative_angle,
 )
+from data.cervical_prior import AXIAL, EXT, FLEX, FULL_SHARES, HEAD_RANGE_DEG, LAT, START_SHARES
+from data.joint_limits import JOINT_LEVELS, euler_limits, range_of_motion_shares
 
 NUM_JOINTS = len(JOINT_LEVELS)
 SPLITS = ("uniform", "rom", "invivo")

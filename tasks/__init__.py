@@ -35,7 +35,7 @@ from typing import Any, Protocol
 import torch
 from torch import nn
 
-from data.cli import REQUIRED, register_config
+from base.cli import REQUIRED, register_config
 
 TASKS = {
     "larynx_transformer": "tasks.larynx_transformer",

@@ -24,7 +24,7 @@ Loss per batch of frames::
     mean_j |R_j - R_j*|^2 / 2  +  lambda_fk |H(theta) - H*|^2 / 2  +  lambda_rot E_rot  +  lambda_sim E_sim
 
 (``|R - R*|^2 / 2 = 2 (1 - cos angle)``, about angle^2 in radians^2; E_rot and E_sim from
-``models.joint_limits``).  Evaluation: per-joint angular error (degrees) of the model after the exact
+``data.joint_limits``).  Evaluation: per-joint angular error (degrees) of the model after the exact
 correction, of the model's raw output (with its own head error and share of joints inside the limits: the
 correction makes those hold for any output, so they are what shows the network learnt), and of the two
 analytic baselines after the same correction.
@@ -38,9 +38,11 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from base.cli import REQUIRED, register_config, to_dataclass
+from base.errors import InputError
+from base.rotations import axis_angle_to_matrix, relative_angle
 from data.cervical_prior import PriorConfig, head_rotations, load_theta_sequences, sample_sequences
-from data.cli import REQUIRED, register_config, to_dataclass
-from data.errors import InputError
+from data.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
 from data.splits import split_by_file
 from models.head2neck import (
     Head2NeckConfig,
@@ -52,9 +54,7 @@ from models.head2neck import (
     model_config,
     split_head_rotation,
 )
-from models.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
 from models.rig import HeadNeckModel
-from models.rotations import axis_angle_to_matrix, relative_angle
 
 __all__ = ["Task", "build_model", "Head2NeckTaskConfig", "SyntheticData", "ThetaSeqData"]
 

@@ -1,4 +1,4 @@
-"""Task: train the expression -> larynx transformer (``models.larynx_transformer``).
+"""Task: train the expression -> larynx transformer (``models.larynx``).
 
 Data (``cfg.data``, hydra group ``data``; every sequence is resampled to ``data.fps``; tau in UV units):
 - ``data=synthetic`` (:class:`SyntheticData`): ``data.synthetic_larynx`` sequences.  Validation is
@@ -55,8 +55,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from data.cli import REQUIRED, register_config, to_dataclass
-from data.errors import InputError
+from base.cli import REQUIRED, register_config, to_dataclass
+from base.errors import InputError
 from data.expressions import NUM_EXPRESSIONS
 from data.pairs import LarynxSequence, load_pairs, split_by_take
 from data.synthetic_larynx import (
@@ -69,7 +69,7 @@ from data.synthetic_larynx import (
     split_subjects,
 )
 from models.checkpoint import load_checkpoint
-from models.larynx_transformer import (
+from models.larynx import (
     SIZES,
     SIZES_BEFORE_OPTIONS,
     LarynxTransformerConfig,
@@ -338,7 +338,7 @@ def rmse(predictions: list[np.ndarray], sequences: list[LarynxSequence]) -> floa
 def warm_start(model, init_from: str) -> None:
     """Start ``model`` from the weights of ``init_from`` (``task.init_from``): a checkpoint path, or
     ``pretrained`` for the shipped model.  The per-subject styles start from that model's average person
-    (:func:`models.larynx_transformer.transfer_weights`).  InputError for a checkpoint of another task or
+    (:func:`models.larynx.transfer_weights`).  InputError for a checkpoint of another task or
     of other model sizes; a note when it was trained at another frame rate (its filters are in frames)."""
     path = default_checkpoint("larynx_transformer") if init_from == "pretrained" else init_from
     try:

@@ -19,7 +19,7 @@ SAMPLES_DIR = SHARED_ASSETS.parent / "samples"
 torch.set_num_threads(min(2, torch.get_num_threads()))
 
 # Published cervical ranges of motion, degrees, root to head (C7-T1, C6-C7, C5-C6, C4-C5, C3-C4, C2-C3,
-# C1-C2, O-C1), typed from the sources (not from models/joint_limits.py, which they check):
+# C1-C2, O-C1), typed from the sources (not from data/joint_limits.py, which they check):
 # axial rotation to one side, White & Panjabi, Clinical Biomechanics of the Spine, 2nd ed. 1990,
 # tables 2-1 and 2-3;
 AXIAL_ONE_SIDE = np.array([2, 6, 7, 7, 7, 3, 40, 5], float)

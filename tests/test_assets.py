@@ -9,8 +9,8 @@ import pytest
 import torch
 from release_layout import write_release
 
+from base.errors import InputError
 from data.assets import RigData, convert
-from data.errors import InputError
 from data.mesh_io import read_obj, triangulate, write_obj, write_ply
 from models.rig import HeadNeckModel
 

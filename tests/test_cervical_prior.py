@@ -10,6 +10,8 @@ import pytest
 import torch
 from conftest import AXIAL_ONE_SIDE
 
+from base.errors import InputError
+from base.files import save_npy
 from data.cervical_prior import (
     C1C2,
     MOTION_KINDS,
@@ -21,9 +23,7 @@ from data.cervical_prior import (
     sample_sequences,
     segmental_euler,
 )
-from data.errors import InputError
-from data.files import save_npy
-from models.joint_limits import RANGES_DEG, within_limits
+from data.joint_limits import RANGES_DEG, within_limits
 
 # "In vivo primary and coupled segmental motions of the healthy female head-neck complex during dynamic head
 # axial rotation" (J Biomech 2021): one-sided rotation 55.5 deg, C0-C2 71.3 %, C2-T1 18.6 %, coupled bending

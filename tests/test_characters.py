@@ -9,8 +9,13 @@ import numpy as np
 import pytest
 import torch
 
+from base.cli import run_cli
+from base.errors import InputError
 from data.assets import JOINT_NAMES, RigData
-from data.characters import (
+from data.mesh_io import triangulate, write_obj
+from data.procedural_rig import build_procedural_rig
+from models.rig import HeadNeckModel
+from scene.characters import (
     GiraffeSettings,
     build_giraffe,
     chain_length,
@@ -24,14 +29,9 @@ from data.characters import (
     rest_world,
     self_intersections,
 )
-from data.characters import (
+from scene.characters import (
     run as characters_run,
 )
-from data.cli import run_cli
-from data.errors import InputError
-from data.mesh_io import triangulate, write_obj
-from data.procedural_rig import build_procedural_rig
-from models.rig import HeadNeckModel
 
 SETTINGS = GiraffeSettings()
 

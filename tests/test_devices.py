@@ -14,11 +14,11 @@ from test_train import config as head2neck_config
 
 import tasks  # noqa: F401  (registers the config schemas)
 import train
-from data.cli import compose_config
+from base.cli import compose_config
+from base.rotations import axis_angle_to_matrix, relative_angle
+from data.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
 from models.head2neck import chain_head_rotation, correct_to_head, head_error_deg, split_head_rotation
-from models.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
-from models.larynx_transformer import LarynxDataFields, LarynxTransformer, LarynxTransformerConfig
-from models.rotations import axis_angle_to_matrix, relative_angle
+from models.larynx import LarynxDataFields, LarynxTransformer, LarynxTransformerConfig
 from tasks.head2neck import Task as Head2NeckTask
 from tasks.larynx_transformer import Task as LarynxTask
 

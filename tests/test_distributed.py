@@ -19,7 +19,7 @@ from test_train import REPO, TINY, config, rows, weights
 
 import tasks
 import train
-from data.errors import InputError
+from base.errors import InputError
 from models.checkpoint import load_checkpoint
 
 TIMEOUT = 600

@@ -9,8 +9,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from base.rotations import axis_angle_to_matrix
 from models.rig import HeadNeckModel, dual_quaternion_skinning, linear_blend_skinning
-from models.rotations import axis_angle_to_matrix
 
 TWIST = np.radians(60.0)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from data.errors import InputError
+from base.errors import InputError
 from data.expressions import EXPRESSION_NAMES, read_expressions
 
 K = {name: k for k, name in enumerate(EXPRESSION_NAMES)}

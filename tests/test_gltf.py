@@ -1,4 +1,4 @@
-"""GLB export (data.gltf): the Khronos validator, and an independent re-import that evaluates the file.
+"""GLB export (scene.gltf): the Khronos validator, and an independent re-import that evaluates the file.
 
 The evaluator below reads the GLB's bytes itself (header, JSON and BIN chunks, accessors with sparse
 storage, node transforms, skin, morph targets, animation samplers) without pygltflib or the exporter's
@@ -22,12 +22,12 @@ import numpy as np
 import pytest
 import torch
 
-from data.cli import run_cli
-from data.errors import InputError
-from data.gltf import export_glb, larynx_targets, resolve_rig, run
+from base.cli import run_cli
+from base.errors import InputError
 from data.mesh_io import triangulate
 from data.params import AnimationParams, rig_checksum, save_params
 from models.rig import HeadNeckModel
+from scene.gltf import export_glb, larynx_targets, resolve_rig, run
 
 REPO = Path(__file__).resolve().parents[1]
 VALIDATOR_SCRIPT = REPO / "tests" / "gltf_validate.mjs"
@@ -463,7 +463,7 @@ def test_reimport_reproduces_the_real_rig(real_rig, real_export):
 
 @pytest.fixture(scope="module")
 def giraffe(builtin_rig):
-    from data.characters import build_giraffe
+    from scene.characters import build_giraffe
 
     return HeadNeckModel(build_giraffe(builtin_rig.rig))
 

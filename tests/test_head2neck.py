@@ -1,4 +1,4 @@
-"""Head orientation -> cervical spine (models/head2neck.py, tasks/head2neck.py, motion/head2neck.py).
+"""Head orientation -> cervical spine (models/head2neck.py, tasks/head2neck.py, motion/head2neck/__init__.py).
 
 The learning tests train a tiny model on the in-vivo prior (a known generating process) and judge the raw
 network (the exact correction makes the head orientation and the limits hold for any output, so they show
@@ -22,10 +22,20 @@ from hydra import compose, initialize_config_dir
 from scipy.spatial.transform import Rotation
 
 import train
+from base.cli import compose_config
+from base.errors import InputError
+from base.files import save_npy, write_csv
+from base.rotations import (
+    axis_angle_to_euler,
+    axis_angle_to_matrix,
+    axis_angle_to_quaternion,
+    matrix_to_quaternion,
+    quaternion_to_matrix,
+    relative_angle,
+    ypr_to_matrix,
+)
 from data.cervical_prior import PriorConfig, head_rotations, sample_sequences
-from data.cli import compose_config
-from data.errors import InputError
-from data.files import save_npy, write_csv
+from data.joint_limits import clamp_to_limits, within_limits
 from models.checkpoint import load_model
 from models.head2neck import (
     Head2NeckConfig,
@@ -37,16 +47,6 @@ from models.head2neck import (
     head_error_deg,
     predict_theta,
     split_head_rotation,
-)
-from models.joint_limits import clamp_to_limits, within_limits
-from models.rotations import (
-    axis_angle_to_euler,
-    axis_angle_to_matrix,
-    axis_angle_to_quaternion,
-    matrix_to_quaternion,
-    quaternion_to_matrix,
-    relative_angle,
-    ypr_to_matrix,
 )
 from motion.head2neck import read_head_rotations, run
 

@@ -6,8 +6,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from data.errors import InputError
-from data.files import save_npy
+from base.errors import InputError
+from base.files import save_npy
 from motion.head2neck import read_head_rotations, recentered
 
 

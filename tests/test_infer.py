@@ -15,9 +15,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from data.cli import compose_config
-from data.errors import InputError
-from data.files import write_csv
+from base.cli import compose_config
+from base.errors import InputError
+from base.files import write_csv
 from data.params import load_params, rig_checksum
 from data.synthetic_tau import swallow_profile
 from models.checkpoint import save_checkpoint
@@ -258,8 +258,8 @@ def test_exports_land_in_the_output_folder(tmp_path):
 def test_character_giraffe_gets_the_motion_at_its_base(tmp_path, builtin_rig):
     """The giraffe's c7t1 (standing in for T1-T2) takes 3x the human flexion, the joints above 0.86x
     (the gains motion.retarget documents); the giraffe's file sits beside its params."""
+    from base.rotations import axis_angle_to_euler
     from data.assets import RigData
-    from models.rotations import axis_angle_to_euler
 
     time = np.arange(30) / 30.0
     write_csv(tmp_path / "nod.csv", {"time": time, "jawOpen": np.full(30, 0.2), "HeadYaw": np.zeros(30),

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from data.cli import compose_config
-from data.errors import InputError
+from base.cli import compose_config
+from base.errors import InputError
 from tests.test_expressions import LLF_HEADER, llf_rows
 
 REPO = Path(__file__).resolve().parents[1]

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from data.cli import as_list
-from data.errors import InputError
-from data.files import atomic_path, save_npy, write_csv
-from data.tables import CsvTable
+from base.cli import as_list
+from base.errors import InputError
+from base.files import atomic_path, save_npy, write_csv
+from base.tables import CsvTable
 from data.tau_track import read_tau_track
 
 

@@ -5,7 +5,8 @@ import math
 
 import torch
 
-from models.joint_limits import (
+from base.rotations import axis_angle_to_euler, euler_to_axis_angle, euler_to_matrix, matrix_to_euler
+from data.joint_limits import (
     adjacent_similarity_energy,
     clamp_to_limits,
     euler_limits,
@@ -13,7 +14,6 @@ from models.joint_limits import (
     rotation_limit_energy,
     within_limits,
 )
-from models.rotations import axis_angle_to_euler, euler_to_axis_angle, euler_to_matrix, matrix_to_euler
 
 
 def random_euler_inside(batch: int, seed: int, fraction: float = 0.9) -> torch.Tensor:

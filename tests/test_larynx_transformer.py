@@ -13,9 +13,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import tasks  # noqa: F401  (registers the config schemas)
-from data.errors import InputError
+from base.errors import InputError
+from base.files import write_csv
 from data.expressions import EXPRESSION_NAMES
-from data.files import write_csv
 from data.pairs import save_pair
 from data.synthetic_larynx import (
     HELDOUT_RANGES,
@@ -35,7 +35,7 @@ from data.synthetic_larynx import (
 )
 from data.synthetic_tau import SWALLOW_LANDMARK_PHASES
 from models.checkpoint import load_model, save_checkpoint
-from models.larynx_transformer import build_model, hinge_features, predict_tau, tensor_bytes
+from models.larynx import build_model, hinge_features, predict_tau, tensor_bytes
 
 REPO = Path(__file__).resolve().parents[1]
 K = {name: k for k, name in enumerate(EXPRESSION_NAMES)}
@@ -111,7 +111,7 @@ def test_the_head_reads_how_far_the_stream_goes_without_the_output_norm():
     """model.output_norm=false (the default): tau's deviation from the head's bias grows in proportion with the
     residual stream, so a face moving further than in training can move tau further; with the LayerNorm (as in
     checkpoints from before the option, which load with it) twice the stream gives the same tau."""
-    from models.larynx_transformer import LarynxTransformerConfig
+    from models.larynx import LarynxTransformerConfig
 
     assert LarynxTransformerConfig().output_norm is False
     stream = torch.randn(2, 30, TINY_MODEL["d_model"], generator=torch.Generator().manual_seed(3))
@@ -198,7 +198,7 @@ def long_stream():
 def test_smoothing_is_a_bank_of_first_order_low_passes():
     """Impulse response (1 - a) a^k per channel, a = exp(-1/tau); a constant input stays constant (it starts at
     the first frame, not at zero); chunks and carried states give the one-pass result."""
-    from models.larynx_transformer import Smoothing
+    from models.larynx import Smoothing
 
     torch.manual_seed(0)
     smoothing = Smoothing(4, max_frames=30.0, chunk=16)
@@ -686,7 +686,7 @@ def test_psi_noise_is_white_per_frame_and_channel_and_leaves_tau_alone(tmp_path)
 def test_the_default_run_takes_its_length_from_the_data_and_keeps_the_best_weights(tmp_path, capsys):
     """configs/trainer/larynx_transformer.yaml: trainer.max_steps null (the task's Task.max_steps), validation every
     100 steps, early stopping and the best weights restored."""
-    from data.cli import compose_config
+    from base.cli import compose_config
 
     default = compose_config("train", ["task=larynx_transformer", "data=pairs", f"data.path={tmp_path}"]).trainer
     assert (default.max_steps, default.eval_every, default.early_stopping_patience, default.restore_best) == (
@@ -828,7 +828,7 @@ def test_warm_start_refuses_what_does_not_fit(tmp_path):
 def test_the_shipped_model_fits_the_default_sizes(tmp_path):
     """task.init_from=pretrained starts from models/pretrained/larynx_transformer.pt: it must keep fitting the
     default model config (a change of the defaults needs the shipped model retrained)."""
-    from data.cli import compose_config
+    from base.cli import compose_config
     from models.pretrained import load_default
     from tasks.larynx_transformer import Task
 

@@ -1,4 +1,4 @@
-"""Pair files and the capture alignment CLI (data/pairs.py)."""
+"""Pair files and the capture alignment CLI (data/pairs/__init__.py)."""
 from __future__ import annotations
 
 import subprocess
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data.errors import InputError
+from base.errors import InputError
+from base.files import save_npy, save_npz, write_csv
 from data.expressions import EXPRESSION_NAMES, read_expressions
-from data.files import save_npy, save_npz, write_csv
 from data.pairs import LarynxSequence, align_pair, load_pair, load_pairs, save_pair, split_by_take, take_from_name
 from data.splits import split_by_file
 from data.tau_track import read_tau_track

@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from data.errors import InputError
+from base.errors import InputError
 from models import pretrained
 from models.checkpoint import load_model
 

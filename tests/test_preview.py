@@ -1,4 +1,4 @@
-"""Preview video (motion.preview): frames that follow the pose, the strip, side by side, the mp4 file."""
+"""Preview video (scene.preview): frames that follow the pose, the strip, side by side, the mp4 file."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from data.cli import run_cli
-from data.errors import InputError
+from base.cli import run_cli
+from base.errors import InputError
 from data.params import AnimationParams, rig_checksum, save_params
-from motion.preview import Panel, output_frames, preview_image, run, view_rotation, write_preview
+from scene.preview import Panel, output_frames, preview_image, run, view_rotation, write_preview
 
 
 def nod_clip(rig, frames: int = 10, fps: float = 30.0, flexion: float = 0.1) -> AnimationParams:

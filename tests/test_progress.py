@@ -1,10 +1,10 @@
-"""data.progress: a line now and then where there is no terminal."""
+"""base.progress: a line now and then where there is no terminal."""
 from __future__ import annotations
 
 import io
 
-import data.progress as progress_module
-from data.progress import LineProgress, progress_bar
+import base.progress as progress_module
+from base.progress import LineProgress, progress_bar
 
 
 def test_lines_come_at_the_interval_and_once_at_the_end(monkeypatch):

@@ -1,5 +1,5 @@
-"""Normal-map renderer (data/render.py), normal-map files (data/normals.py) and synthetic sequences
-(data/normal_sequences.py).
+"""Normal-map renderer (scene/render.py), normal-map files (data/normals.py) and synthetic sequences
+(scene/normal_sequences/__init__.py).
 
 The renderer is checked against analytic surfaces (a plane; a sphere, each pixel's ray intersected with it
 in closed form), its projection against its own rasterised depth, the encoding against its definition
@@ -18,12 +18,13 @@ import OpenEXR
 import pytest
 import torch
 
-from data.errors import InputError
+from base.errors import InputError
+from base.tables import CsvTable
 from data.expressions import EXPRESSION_NAMES, read_expressions
-from data.normal_sequences import SequenceConfig, head_motion, make_sequence, tau_r2, write_sequence
 from data.normals import encode_normals, read_normal_image, stored_to_unit, write_normal_image
 from data.procedural_rig import Y_BOTTOM, Y_TOP
-from data.render import (
+from scene.normal_sequences import SequenceConfig, head_motion, make_sequence, tau_r2, write_sequence
+from scene.render import (
     Camera,
     NeckRenderer,
     larynx_areas,
@@ -33,7 +34,6 @@ from data.render import (
     render_normals,
     rest_larynx_point,
 )
-from data.tables import CsvTable
 
 REPO = Path(__file__).resolve().parents[1]
 CM_PER_UV = Y_TOP - Y_BOTTOM     # the built-in rig's v runs linearly from Y_BOTTOM to Y_TOP (world cm)
@@ -361,7 +361,7 @@ def test_sequence_from_a_live_link_face_take(builtin_rig, livelinkface_samples):
 def test_normal_sequences_runs_as_a_command(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     out = tmp_path / "seq"
-    result = subprocess.run([sys.executable, "-m", "data.normal_sequences", f"out={out}", "frames=4", "size=64",
+    result = subprocess.run([sys.executable, "-m", "scene.normal_sequences", f"out={out}", "frames=4", "size=64",
                              "cm_per_px=0.32", "format=npy", "seed=3", "head_motion_deg=0"], cwd=tmp_path, env=env,
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
@@ -374,7 +374,7 @@ def test_normal_sequences_runs_as_a_command(tmp_path):
     # Bad input: exit status 2 and one line naming the key, nothing written.
     for args, message in ((["format=jpg"], "format=jpg: expected png8, png16, exr, npy"),
                           (["framez=3"], "framez"), (["frames=many"], "frames")):
-        bad = subprocess.run([sys.executable, "-m", "data.normal_sequences", f"out={tmp_path / 'bad'}", *args],
+        bad = subprocess.run([sys.executable, "-m", "scene.normal_sequences", f"out={tmp_path / 'bad'}", *args],
                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
         assert bad.returncode == 2 and message in bad.stderr and "Traceback" not in bad.stderr
         assert not (tmp_path / "bad").exists()

@@ -6,14 +6,13 @@ import numpy as np
 import pytest
 import torch
 
+from base.cli import run_cli
+from base.rotations import axis_angle_to_euler, euler_to_axis_angle, matrix_to_axis_angle
 from data.assets import RigData
-from data.characters import build_giraffe
-from data.cli import run_cli
+from data.joint_limits import RANGES_DEG, euler_limits
 from data.mesh_io import read_obj, triangulate
 from data.params import AnimationParams, check_rig, load_params, rig_checksum, save_params
-from models.joint_limits import RANGES_DEG, euler_limits
 from models.rig import HeadNeckModel
-from models.rotations import axis_angle_to_euler, euler_to_axis_angle, matrix_to_axis_angle
 from motion.retarget import (
     GIRAFFE_GAINS,
     giraffe_limits,
@@ -24,6 +23,7 @@ from motion.retarget import (
     supports_skinning,
 )
 from motion.retarget import run as retarget_run
+from scene.characters import build_giraffe
 
 
 @pytest.fixture(scope="module")

@@ -49,7 +49,7 @@ def test_trajectory_truth_describes_its_swallows():
         profile = swallow_profile(fine, s.onset, s.duration, s.amplitude)
         assert fine[np.argmax(profile)] == pytest.approx(s.peak_time, abs=2e-4)
         assert profile.max() == pytest.approx(s.amplitude, rel=1e-6)
-    # random_tau_trajectory is the same process (data.normal_sequences depends on it).
+    # random_tau_trajectory is the same process (scene.normal_sequences depends on it).
     same, onsets = random_tau_trajectory(1800, fps, seed=5, swallows_per_minute=8.0)
     with_truth, again = tau_trajectory_with_truth(1800, fps, seed=5, swallows_per_minute=8.0)
     np.testing.assert_array_equal(same, with_truth)

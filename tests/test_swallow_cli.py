@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data.cli import compose_config, run_cli
-from data.errors import InputError
-from data.files import save_npy, write_csv
+from base.cli import compose_config, run_cli
+from base.errors import InputError
+from base.files import save_npy, write_csv
+from base.tables import CsvTable
 from data.synthetic_tau import (
     SWALLOW_AMPLITUDE,
     SWALLOW_DURATION,
@@ -19,7 +20,6 @@ from data.synthetic_tau import (
     swallow_profile,
     warped_swallow_clips,
 )
-from data.tables import CsvTable
 from data.tau_track import TauTrack, read_tau_track, write_tau_track
 from motion.swallow import (
     PlaybackConfig,
@@ -190,7 +190,7 @@ def test_cli_exit_status_2_and_one_line_naming_the_file(tmp_path):
 
 
 def test_cli_shell_exit_status_2_on_bad_settings(tmp_path, capsys):
-    """The same shell in-process (data.cli.run_cli): a bad setting or value exits 2 with one line naming it."""
+    """The same shell in-process (base.cli.run_cli): a bad setting or value exits 2 with one line naming it."""
     clips = warped_swallow_clips(1, seed=24, fps_choices=(30.0,))
     path = write_clips(tmp_path, [clips[0], clips[0]])[1]
     for overrides, expected in ((["playback.fade_seconds=0"], "PlaybackConfig.fade_seconds must be positive"),

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter1d
 
-from data.errors import InputError
+from base.errors import InputError
 from data.synthetic_tau import (
     SWALLOW_AMPLITUDE,
     SWALLOW_DURATION,

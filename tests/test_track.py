@@ -1,6 +1,6 @@
 """Larynx tracker (motion/track/) on synthetic normal-map sequences with a known larynx position.
 
-The sequences come from data.normal_sequences (the rig rendered with tau from random_tau_trajectory,
+The sequences come from scene.normal_sequences (the rig rendered with tau from random_tau_trajectory,
 smooth head motion, expressions of a recording, eta, noise); the truth is the projected larynx point and,
 for the neck's own motion, the same point with the head still.  The baseline is the plain estimate of the
 paper's formula: the integer arg-max of the raw correlation k * N over the frame.  Scales are derived from
@@ -21,15 +21,13 @@ import pytest
 import torch
 from conftest import SAMPLES_DIR, requires_shared
 
-from data.cli import compose_config
-from data.errors import InputError
-from data.files import save_npy
-from data.normal_sequences import SequenceConfig, make_sequence, tau_r2, write_sequence
+from base.cli import compose_config
+from base.errors import InputError
+from base.files import save_npy
+from base.signal import parabolic_peak
+from base.tables import CsvTable
 from data.normals import encode_normals, write_normal_image
 from data.procedural_rig import Y_BOTTOM, Y_TOP
-from data.render import NeckRenderer, neck_camera
-from data.tables import CsvTable
-from motion.signal import parabolic_peak
 from motion.track import (
     CSV_COLUMNS,
     BandpassConfig,
@@ -56,6 +54,8 @@ from motion.track import (
 )
 from motion.track.kernel import with_window
 from motion.track.scores import subpixel_peak
+from scene.normal_sequences import SequenceConfig, make_sequence, tau_r2, write_sequence
+from scene.render import NeckRenderer, neck_camera
 
 REPO = Path(__file__).resolve().parents[1]
 CM_PER_UV = Y_TOP - Y_BOTTOM
@@ -544,7 +544,7 @@ def test_kernel_file_round_trip(tmp_path, kernel, sequence):
 
 
 def test_cli_round_trip_writes_the_columns_and_the_plot(tmp_path):
-    from data.normal_sequences import run as render_run
+    from scene.normal_sequences import run as render_run
 
     frames = tmp_path / "frames"
     render_run(compose_config("normal_sequences", [f"out={frames}", "frames=45", "seed=0", "swallows_per_minute=40"]))

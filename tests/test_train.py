@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 
 import tasks
 import train
-from data.errors import InputError
+from base.errors import InputError
 from models.checkpoint import load_checkpoint, load_model, save_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]

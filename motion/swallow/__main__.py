@@ -1,5 +1,5 @@
 """``python -m motion.swallow``: the command line (``motion.swallow.cli``)."""
-from data.cli import run_cli
+from base.cli import run_cli
 from motion.swallow.cli import __doc__ as doc
 from motion.swallow.cli import run
 

@@ -22,8 +22,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from data.cli import as_list, register_config, to_dataclass
-from data.errors import InputError
+from base.cli import as_list, register_config, to_dataclass
+from base.errors import InputError
 from data.tau_track import TauTrack, write_tau_track
 from motion.swallow.detect import DetectionConfig, uniform_track
 from motion.swallow.files import plot_playback, plot_template, read_template, read_tracks, write_template

@@ -48,9 +48,9 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d, median_filter, percentile_filter
 from scipy.signal import find_peaks
 
+from base.signal import parabolic_peak
+from base.timebase import resample_uniform
 from data.tau_track import TauTrack
-from data.timebase import resample_uniform
-from motion.signal import parabolic_peak
 
 # Landmark names in time order (p: percent of the height; k: count from the peak outwards); a
 # swallow has those it shows.

@@ -6,12 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import InputError
-from data.files import write_csv
-from data.plots import figure, save_figure
-from data.tables import CsvTable
+from base.errors import InputError
+from base.files import write_csv
+from base.plots import figure, save_figure
+from base.tables import CsvTable
+from base.timebase import check_increasing, estimate_fps
 from data.tau_track import TauTrack, read_tau_track
-from data.timebase import check_increasing, estimate_fps
 from motion.swallow.register import SwallowTemplate, TemplateBuild, template_error
 
 TEMPLATE_KIND = "a swallow template written by python -m motion.swallow (CSV time,tau,std; time 0 = onset)"

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from data.errors import InputError
+from base.errors import InputError
 from data.tau_track import TauTrack
 from motion.swallow.detect import DetectionConfig, SwallowEvent, TrackAnalysis, analyse_track, uniform_track
 

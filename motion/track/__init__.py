@@ -15,7 +15,7 @@ the rise.  One module per part:
 - ``cli``: ``python -m motion.track`` (:func:`run`, the CSV columns, the plot).
 
 Encoding and image files: ``data.normals``; camera, image convention and the larynx point (the
-tracker's ground truth): ``data.render``.  Positions are (x, y) = (col, row) pixels, rows down.
+tracker's ground truth): ``scene.render``.  Positions are (x, y) = (col, row) pixels, rows down.
 Figures: ``benchmarks/README.md``, section "Tracker and renderer".
 
 Example::

@@ -1,5 +1,5 @@
 """``python -m motion.track``: see ``motion.track.cli``."""
-from data.cli import run_cli
+from base.cli import run_cli
 from motion.track.cli import __doc__ as doc
 from motion.track.cli import run
 

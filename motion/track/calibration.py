@@ -19,10 +19,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from data.render import DEFAULT_CM_PER_PX, NeckRenderer, neck_camera
 from motion.track.config import TrackerConfig, WindowConfig
 from motion.track.kernel import CONTEXT_MARGIN, LarynxKernel, with_window
 from motion.track.match import LarynxTracker
+from scene.render import DEFAULT_CM_PER_PX, NeckRenderer, neck_camera
 
 # Candidate windows at 0.08 cm/px: offsets below the kernel's centre and heights (pixels).
 WINDOW_OFFSETS_PX = (0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0, 16.0, 18.0)

@@ -8,7 +8,7 @@ Settings: :class:`TrackCli` (``configs/track.yaml`` holds what differs from its 
 ``frame,time,x_px,y_px,tau_px,tau,confidence,tau_px_raw,neck_dx_px,neck_dy_px``:
 
 - (x_px, y_px): the larynx point's position (col, row; rows go down) in the image, the kernel's centre
-  (for the rig kernel the rig's ``data.render.larynx_point``).
+  (for the rig kernel the rig's ``scene.render.larynx_point``).
 - tau_px_raw = y_rest - y_px (positive = up), the rest row being the position in frame ``rest_frame``.
 - neck_dx_px, neck_dy_px: the neck's own displacement at the larynx relative to the first frame
   (``motion.track.neck``; NaN when it is not estimated: ``tracker.neck.follow=false`` without
@@ -29,11 +29,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from data.cli import REQUIRED, register_config, to_dataclass
-from data.errors import InputError
-from data.files import write_csv
-from data.plots import figure, save_figure
-from data.render import DEFAULT_CM_PER_PX, neck_camera
+from base.cli import REQUIRED, register_config, to_dataclass
+from base.errors import InputError
+from base.files import write_csv
+from base.plots import figure, save_figure
 from models.rig import HeadNeckModel
 from motion.track.calibration import calibrate_window, rig_px_per_tau
 from motion.track.config import TrackerConfig
@@ -48,6 +47,7 @@ from motion.track.kernel import (
 from motion.track.match import Track, track_sequence
 from motion.track.neck import NeckModel
 from motion.track.sources import FLOAT_ENCODINGS, open_source
+from scene.render import DEFAULT_CM_PER_PX, neck_camera
 
 CSV_COLUMNS = ("frame", "time", "x_px", "y_px", "tau_px", "tau", "confidence", "tau_px_raw", "neck_dx_px",
                "neck_dy_px")
@@ -172,7 +172,7 @@ def plot_track(path: str | Path, columns: dict, accepted: np.ndarray, px_per_tau
 def run(cfg) -> dict:
     """The CLI's work for a composed ``configs/track.yaml`` (tests call this in-process); returns the columns."""
     settings: TrackCli = to_dataclass(cfg, where="configs/track.yaml")
-    cv2.setNumThreads(int(settings.threads))  # torch's are set by data.cli.run_cli
+    cv2.setNumThreads(int(settings.threads))  # torch's are set by base.cli.run_cli
     started = _time.perf_counter()
     source = open_source(settings.input, settings.fps, settings.float_encoding)
     px_per_tau = calibration(settings)

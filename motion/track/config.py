@@ -1,6 +1,6 @@
 """The tracker's settings (``TrackerConfig``): pixels and frames, given for the default neck view.
 
-The defaults suit ``data.render.DEFAULT_CM_PER_PX`` = 0.08 cm/px (a larynx ~55 px wide and ~90 px
+The defaults suit ``scene.render.DEFAULT_CM_PER_PX`` = 0.08 cm/px (a larynx ~55 px wide and ~90 px
 tall); :meth:`TrackerConfig.at_scale` gives the same physical sizes at another pixel scale (the CLI
 applies it for ``cm_per_px=``).  The sections and what each setting does:
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from data.render import DEFAULT_CM_PER_PX
+from scene.render import DEFAULT_CM_PER_PX
 
 
 def _odd(width: int, factor: float) -> int:

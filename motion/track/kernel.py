@@ -1,7 +1,7 @@
 """The larynx kernel and the filter it is matched through.
 
 A kernel ``k`` holds the generic larynx shape as camera-space normals (70x70x3 by default, the paper's
-size), its centre the larynx point (``data.render.larynx_point``) in kernel pixels.  What is matched
+size), its centre the larynx point (``scene.render.larynx_point``) in kernel pixels.  What is matched
 (:meth:`LarynxKernel.template`) is the kernel after the band-pass (:func:`bandpass`); for the rig's
 kernel (:func:`rig_kernel`) it is the larynx's own normal perturbation, the band-passed rest view minus
 the same view without the larynx (eta 0), so the neck around the larynx, which stays put while the
@@ -19,12 +19,12 @@ import cv2
 import numpy as np
 import torch
 
-from data.errors import InputError
-from data.files import load_npy
+from base.errors import InputError
+from base.files import load_npy
 from data.normals import read_normal_image, stored_to_unit
-from data.render import DEFAULT_CM_PER_PX, NeckRenderer, neck_camera
 from motion.track.config import UNCALIBRATED_SIGMA_Y_PX, BandpassConfig, WindowConfig
 from motion.track.sources import MIN_NORM, check_normal_map, decode_frame, float_is_raw
+from scene.render import DEFAULT_CM_PER_PX, NeckRenderer, neck_camera
 
 KERNEL_SIZE = 70                 # the paper's 70x70x3 kernel
 CONTEXT_MARGIN = 96              # px of rendered view around the rig's kernel (band-pass context)

@@ -30,8 +30,8 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from data.errors import InputError
-from data.progress import progress_bar
+from base.errors import InputError
+from base.progress import progress_bar
 from motion.track.config import TrackerConfig
 from motion.track.kernel import LarynxKernel, bandpass, bandpass_margins, match_window
 from motion.track.neck import NeckModel, NeckPatches

@@ -21,7 +21,7 @@ in the image as much as a swallow does.  The tracker separates the two:
   matching's own error under head motion, 0.2-1 px, is mostly the skin's changing look), so the fit
   does not amplify it.  The target is the larynx point's
   displacement between the posed rig and the rig still with the same tau
-  (``data.render.larynx_point``), so the larynx's rise relative to the neck is what remains.
+  (``scene.render.larynx_point``), so the larynx's rise relative to the neck is what remains.
 
 Coordinates: pixels of the frames; offsets relative to the larynx point, rows down.
 """
@@ -33,9 +33,9 @@ import cv2
 import numpy as np
 import torch
 
-from data.render import DEFAULT_CM_PER_PX, Camera, NeckRenderer, neck_camera, render_normals
 from motion.track.config import NeckConfig
 from motion.track.scores import subpixel_peak
+from scene.render import DEFAULT_CM_PER_PX, Camera, NeckRenderer, neck_camera, render_normals
 
 # Patch centres relative to the larynx point at 0.08 cm/px (x right, y down): the lower front of the
 # neck beside and below the larynx, as near to it as its body allows (the nearer, the more like the skin
@@ -122,7 +122,7 @@ class NeckModel:
                  samples: int = 1024, max_deg: float = 15.0, expression_share: float = 0.15, noise_px: float = 1.0,
                  seed: int = 0) -> NeckModel:
         """Fit the model on ``rig`` (a ``models.rig.HeadNeckModel``) seen through ``camera`` (default: the
-        neck view, ``data.render.neck_camera``), whose rest larynx point is the offsets' origin.
+        neck view, ``scene.render.neck_camera``), whose rest larynx point is the offsets' origin.
 
         The patches (``config.patch_px`` square, at the camera's scale) are the candidates
         ``PATCH_CANDIDATES_PX`` that lie on the rig's skin at rest and off the larynx's body (up to

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from motion.signal import parabolic_peak
+from base.signal import parabolic_peak
 
 # Least squares fit of f = a + b x + c y + d x^2 + e x y + g y^2 to the 3x3 values around a maximum.
 _OFFSETS = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], dtype=np.float64)

@@ -26,7 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from data.errors import InputError
+from base.errors import InputError
 from data.normals import FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, decode_normals, read_normal_image, stored_to_unit
 
 DEFAULT_FPS = 30.0               # image folders and .npy stacks carry no frame rate

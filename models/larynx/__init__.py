@@ -58,10 +58,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from data.cli import register_config
-from data.errors import InputError
+from base.cli import register_config
+from base.errors import InputError
+from base.threads import single_thread
 from data.expressions import NUM_EXPRESSIONS
-from models.threads import single_thread
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Synthetic normal-map sequences of the neck with the ground-truth larynx position, to test the tracker.
 
-A sequence is rendered from the rig (``data.render``, default neck view, orthographic or perspective)
+A sequence is rendered from the rig (``scene.render``, default neck view, orthographic or perspective)
 with a known generating process, deterministic from its seed:
 
 - tau: ``data.synthetic_tau.random_tau_trajectory`` (rest, swallows,
@@ -26,9 +26,9 @@ with a known generating process, deterministic from its seed:
   Background pixels stay 0.
 
 Ground truth: ``larynx_px [T,2]`` = (col, row) of the projection of the
-rig's larynx point (``data.render.larynx_point``: the area-weighted centroid
+rig's larynx point (``scene.render.larynx_point``: the area-weighted centroid
 of the posed surface where the larynx term exceeds 30 % of its maximum,
-weighted by the excess), in the image convention of ``data.render`` (pixel
+weighted by the excess), in the image convention of ``scene.render`` (pixel
 centres at integers, rows down).  The tracker's rig kernel is centred on the
 same point at rest, so its reported position estimates exactly this.
 ``slide_px [T,2]`` is the same point with the head still (theta 0, same tau,
@@ -41,7 +41,7 @@ the true image position, the best a tracker of the image position can do.
 
 CLI (hydra, ``configs/normal_sequences.yaml``, settings :class:`SequencesCli`)::
 
-    python -m data.normal_sequences out=frames/ frames=300 seed=0 [format=png8|png16|exr|npy] [noise=0.05]
+    python -m scene.normal_sequences out=frames/ frames=300 seed=0 [format=png8|png16|exr|npy] [noise=0.05]
         [expressions=take.csv] [head_motion_deg=15] [perspective=true] [rig=hack_rig.npz]
 
 writes ``frame_00000.png ...`` (or ``normals.npy`` [T,H,W,3] float32 raw normals) and ``truth.csv``
@@ -58,15 +58,15 @@ import cv2
 import numpy as np
 import torch
 
-from data.cli import REQUIRED, register_config, run_cli, to_dataclass
-from data.errors import InputError
+from base.cli import REQUIRED, register_config, to_dataclass
+from base.errors import InputError
+from base.files import fresh_output_folder, save_npy
 from data.expressions import EXPRESSION_NAMES, read_expressions
-from data.files import fresh_output_folder, save_npy
 from data.normals import decode_normals, encode_normals, write_normal_image
-from data.render import DEFAULT_CM_PER_PX, DEFAULT_DISTANCE, DEFAULT_SIZE, Camera, NeckRenderer, neck_camera
 from data.synthetic_tau import random_tau_trajectory
 from data.tau_track import TauTrack, write_tau_track
 from models.rig import HeadNeckModel
+from scene.render import DEFAULT_CM_PER_PX, DEFAULT_DISTANCE, DEFAULT_SIZE, Camera, NeckRenderer, neck_camera
 
 SEQUENCE_FORMATS = ("png8", "png16", "exr", "npy")
 SEQUENCE_FILES = ("frame_*", "normals.npy", "truth.csv")     # what write_sequence writes into its folder
@@ -245,7 +245,7 @@ def make_sequence(rig, config: SequenceConfig, seed: int, chunk: int = 8) -> Nor
 
 def write_sequence(folder: str | Path, sequence: NormalSequence, image_format: str = "png8") -> list[Path]:
     """Write frames (``png8``, ``png16``, ``exr`` images or one ``npy`` stack) and ``truth.csv`` into
-    ``folder`` (new, or without such files: ``data.files.fresh_output_folder``); returns the frame files."""
+    ``folder`` (new, or without such files: ``base.files.fresh_output_folder``); returns the frame files."""
     if image_format not in SEQUENCE_FORMATS:
         raise InputError(f"format={image_format}: expected {', '.join(SEQUENCE_FORMATS)}")
     folder = fresh_output_folder(folder, SEQUENCE_FILES, "out")
@@ -270,7 +270,7 @@ def write_sequence(folder: str | Path, sequence: NormalSequence, image_format: s
 
 @dataclass
 class SequencesCli(SequenceConfig):
-    """``python -m data.normal_sequences``: the generator's settings (:class:`SequenceConfig`, flat) and
+    """``python -m scene.normal_sequences``: the generator's settings (:class:`SequenceConfig`, flat) and
     where to write."""
 
     out: str = REQUIRED                   # folder for the frames and truth.csv
@@ -300,7 +300,3 @@ def run(cfg) -> NormalSequence:
     print(f"rendered {len(sequence)} frames of {settings.size}x{settings.size} in {rendered:.1f} s "
           f"({len(sequence) / rendered:.0f} frames/s); wrote {settings.format} frames and truth.csv to {settings.out}")
     return sequence
-
-
-if __name__ == "__main__":
-    run_cli("normal_sequences", run, doc=__doc__)

@@ -1,7 +1,7 @@
 """Normal-map rendering of the head-and-neck rig: camera, batched software rasteriser, the larynx point.
 
 Conventions owned here (the tracker ``motion.track`` and the sequence
-generator ``data.normal_sequences`` use them):
+generator ``scene.normal_sequences`` use them):
 
 - Camera space: x right, y up, z towards the camera (the eye looks along -z).
   Normal maps hold unit normals in camera space; the visible surface has

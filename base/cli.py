@@ -6,7 +6,7 @@ dataclass is the schema and holds the defaults; ``configs/<tool>.yaml`` composes
 ``if __name__ == "__main__": run_cli("<tool>", run)``; ``run(cfg)`` does the work.
 
 - Unknown keys, wrong types and unparsable overrides are rejected by hydra/OmegaConf while composing;
-  required keys are ``MISSING`` (``???``).  Both, and bad input (``data.errors.InputError``) raised by
+  required keys are ``MISSING`` (``???``).  Both, and bad input (``base.errors.InputError``) raised by
   the tool, print ``error: <message>`` on stderr and exit with status 2, without a traceback.
 - ``--help`` prints the tool's docstring and its composed config.
 - A top-level ``threads`` key sets torch's thread count.
@@ -29,7 +29,7 @@ from hydra.errors import HydraException
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from data.errors import InputError
+from base.errors import InputError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 REQUIRED = MISSING  # "???": a setting the user must give (named on exit 2 when missing)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from data.files import atomic_path
+from base.files import atomic_path
 
 
 def figure(**subplots):

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import InputError
-from data.tables import CsvTable
+from base.errors import InputError
+from base.tables import CsvTable
 
 TIME_COLUMNS = ("time", "timestamp", "seconds", "time_s")
 

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from data.errors import InputError, require_file
+from base.errors import InputError, require_file
 
 
 class CsvTable:

@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from data.cli import REQUIRED, register_config, run_cli
-from data.errors import InputError
+from base.cli import REQUIRED, register_config
+from base.errors import InputError
+from base.files import save_npz
 from data.expressions import EXPRESSION_NAMES
-from data.files import save_npz
 from data.mesh_io import read_obj
 from data.normals import stored_to_unit
 
@@ -322,7 +322,3 @@ def run(cfg) -> RigData:
           f"{len(rig.joint_names)} joints, {len(rig.expression_names)} expressions, "
           f"{len(rig.larynx_maps)} larynx map(s) in {time.perf_counter() - started:.1f} s")
     return rig
-
-
-if __name__ == "__main__":
-    run_cli("assets", run, doc=__doc__)

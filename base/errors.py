@@ -1,7 +1,7 @@
 """The project's one error for bad user input, and the checks every reader shares.
 
 Bad input raises :class:`InputError`, whose message names the file, the column or frame, and what was
-expected; the command-line shell (``data.cli``) prints it on one line and exits with status 2.
+expected; the command-line shell (``base.cli``) prints it on one line and exits with status 2.
 """
 from __future__ import annotations
 

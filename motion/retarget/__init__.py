@@ -8,13 +8,13 @@
 the source rig, ``psi [T,55]``, ``tau [T]``, ``eta [T]``).  ``rig=`` is the source rig (the one whose bone
 frames theta is in); without it the rig recorded in the file is used (its checksum must match).
 ``character`` is the target: ``human`` (the source rig itself), ``giraffe`` (built from the source rig on
-the fly, ``data.characters.build_giraffe``, settings under ``giraffe.*``) or a character file (``.npz``
-from ``python -m data.characters``).
+the fly, ``scene.characters.build_giraffe``, settings under ``giraffe.*``) or a character file (``.npz``
+from ``python -m scene.characters``).
 
 The transfer (:func:`retarget_theta`): each joint's bone-local rotation is taken into its anatomical
 frame on the source (``HeadNeckModel.to_anatomical``: +x flexion, +y axial rotation to the left, +z
 lateral bend to the right), so a flexion stays a flexion whatever the bone axes are, optionally scaled
-per joint and axis (gains on the Euler angles ``R = Rz(az) Ry(ay) Rx(ax)``, ``models.rotations``),
+per joint and axis (gains on the Euler angles ``R = Rz(az) Ry(ay) Rx(ax)``, ``base.rotations``),
 clamped to the target's limits, and brought into the target's bone frames (``from_anatomical``).  With
 unit gains and no clamping the anatomical rotations are carried over exactly.  psi goes by expression
 name; tau (UV units of the larynx map, which the giraffe keeps) and eta carry over as they are.
@@ -22,7 +22,7 @@ name; tau (UV units of the larynx map, which the giraffe keeps) and eta carry ov
 Outputs in ``out_dir``: ``params.npz`` for the target (theta in the target's bone frames, its head
 rotation, ``rig`` = the target's rig file, with its checksum: ``character.npz`` written here when the
 character is built on the fly), ``meshes/frame_00000.ply`` ... (``mesh_format=obj`` with UVs), and
-``animation.glb`` with ``export=[glb]`` (``data.gltf.export_glb``; glTF viewers skin linearly, so the GLB
+``animation.glb`` with ``export=[glb]`` (``scene.gltf.export_glb``; glTF viewers skin linearly, so the GLB
 is LBS whatever ``skinning`` is).
 
 Giraffe gains (:data:`GIRAFFE_GAINS`): giraffes move the neck mostly at its base; the joint between the
@@ -34,7 +34,7 @@ ours: c7t1 gets 3x its human flexion/extension and 2x its lateral bend (its sagi
 degrees, the largest of the chain, as a fulcrum's should be; lateral 4 -> 8 per side, a mid-cervical
 joint's), axial rotation is unchanged (the giraffe's head turns at the atlas as ours does), and every
 other joint is scaled down by the common factor that keeps the chain's total for a motion spread over
-the joints by their human ranges of motion (``models.joint_limits.RANGES_DEG``; flexion/extension 0.86,
+the joints by their human ranges of motion (``data.joint_limits.RANGES_DEG``; flexion/extension 0.86,
 lateral 0.93): the head turns about as far, more of it from the base.  The giraffe's limits are the
 human ranges times the gains where a gain exceeds 1 (:func:`giraffe_limits`).
 """
@@ -50,19 +50,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from data.characters import GiraffeSettings, character_kind, load_character
-from data.cli import register_config, run_cli, to_dataclass
-from data.errors import InputError
-from data.files import fresh_output_folder
-from data.gltf import export_glb
+from base.cli import register_config, to_dataclass
+from base.errors import InputError
+from base.files import fresh_output_folder
+from base.plots import figure, save_figure
+from base.rotations import axis_angle_to_euler, euler_to_axis_angle
+from data.joint_limits import RANGES_DEG, euler_limits, range_of_motion_shares
 from data.mesh_io import write_obj, write_ply
 from data.params import AnimationParams, check_rig, load_params, rig_checksum, rig_path, save_params
-from data.plots import figure, save_figure
-from data.render import outward_faces, render_normals
-from models.joint_limits import RANGES_DEG, euler_limits, range_of_motion_shares
 from models.rig import HeadNeckModel
-from models.rotations import axis_angle_to_euler, euler_to_axis_angle
-from motion.preview import framing_camera, shade
+from scene.characters import GiraffeSettings, character_kind, load_character
+from scene.gltf import export_glb
+from scene.preview import framing_camera, shade
+from scene.render import outward_faces, render_normals
 
 SKINNINGS = ("lbs", "dqs")
 MESH_FORMATS = ("ply", "obj")
@@ -224,7 +224,7 @@ POSE_VIEWS = {"extension": "side", "side-bend": "front", "flexion": "side", "twi
 def reference_theta(rig: HeadNeckModel, name: str) -> torch.Tensor:
     """theta [1,J,3] (``rig``'s bone frames) of a reference pose: the head angle of ``REFERENCE_POSES[name]``
     spread over the joints by their human range-of-motion shares in that direction
-    (``models.joint_limits.range_of_motion_shares``, anatomical frames)."""
+    (``data.joint_limits.range_of_motion_shares``, anatomical frames)."""
     axis, degrees = REFERENCE_POSES[name]
     positive, negative = range_of_motion_shares()
     share = (positive if degrees > 0 else negative)[:, axis].double()
@@ -248,7 +248,7 @@ def pose_picture(path: str | os.PathLike, source: HeadNeckModel, target: HeadNec
                  gains: np.ndarray | None = None, size: int = 320, skinning: str = "lbs",
                  names: tuple[str, ...] = ("source", "target")) -> None:
     """The source and the target in the four reference poses (rows: characters; columns: poses), rendered
-    by ``data.render`` (shaded as ``motion.preview``), the target's theta retargeted from the source's with
+    by ``scene.render`` (shaded as ``scene.preview``), the target's theta retargeted from the source's with
     ``gains`` and clamped to its limits when gains are given; saved atomically to ``path``."""
     fig, axes = figure(nrows=2, ncols=len(REFERENCE_POSES), figsize=(3.2 * len(REFERENCE_POSES), 6.8))
     limits = character_limits(target) if gains is not None else None
@@ -392,7 +392,3 @@ def run(cfg) -> AnimationParams | None:
     lines.append(f"done in {timer.perf_counter() - started:.1f} s")
     print("\n".join(lines))
     return result
-
-
-if __name__ == "__main__":
-    run_cli("retarget", run, doc=__doc__)

@@ -1,10 +1,10 @@
 """Preview video of a clip: the posed mesh rendered per frame, with tau and the joint angles as a strip.
 
-    python -m motion.preview source=params.npz out=preview.mp4 [size=256] [view=front|side|three_quarter]
+    python -m scene.preview source=params.npz out=preview.mp4 [size=256] [view=front|side|three_quarter]
         [shading=shaded|normals] [fps=30] [second=giraffe_params.npz]
 
 Each frame is the rig posed by the clip (``rig(theta, psi, tau, eta)``), rendered orthographically with the
-project's rasteriser (``data.render.render_normals``) from a view turned about the vertical axis
+project's rasteriser (``scene.render.render_normals``) from a view turned about the vertical axis
 (front: from +z; side: from the subject's left, +x; three_quarter: half way), framed on the clip's
 posed meshes, and shown shaded (Lambert, a light over the camera's shoulder) or as the normal map.  Under
 it a strip plots the clip's tau and the cervical angles summed over the joints (flexion, axial rotation,
@@ -25,15 +25,15 @@ import numpy as np
 import torch
 from omegaconf import MISSING
 
-from data.cli import register_config, run_cli, to_dataclass
-from data.errors import InputError
-from data.files import atomic_path
-from data.gltf import resolve_rig
+from base.cli import register_config, to_dataclass
+from base.errors import InputError
+from base.files import atomic_path
+from base.rotations import axis_angle_to_euler
 from data.normals import encode_normals
 from data.params import AnimationParams, load_params
-from data.render import Camera, outward_faces, render_normals
 from models.rig import HeadNeckModel
-from models.rotations import axis_angle_to_euler
+from scene.gltf import resolve_rig
+from scene.render import Camera, outward_faces, render_normals
 
 # Camera azimuth about the world's y axis, degrees; the camera moves from the front (+z) towards the
 # subject's left (+x).
@@ -42,7 +42,7 @@ SHADINGS = ("shaded", "normals")
 MARGIN = 1.08                  # frame the posed meshes with 8 % to spare
 LIGHT = np.array([-0.35, 0.45, 0.82])   # camera space: from the upper left, in front
 AMBIENT = 0.22
-ALBEDO_BGR = np.array([0.52, 0.62, 0.80])  # the GLB's skin colour (data.gltf.SKIN_COLOUR), BGR
+ALBEDO_BGR = np.array([0.52, 0.62, 0.80])  # the GLB's skin colour (scene.gltf.SKIN_COLOUR), BGR
 BACKGROUND_BGR = (38, 34, 30)
 STRIP_FRACTION = 0.34          # strip height relative to the render's width
 ANGLE_COLOURS_BGR = ((80, 80, 240), (90, 200, 90), (240, 150, 60))   # flexion, rotation, bend
@@ -318,7 +318,7 @@ def preview_image(panels: list[Panel], frame: int) -> np.ndarray:
 
 @dataclass
 class PreviewConfig:
-    """``python -m motion.preview`` settings (``configs/preview.yaml``).
+    """``python -m scene.preview`` settings (``configs/preview.yaml``).
 
     source: params.npz; out: the .mp4; rig: a rig file overriding the one recorded in source; size:
     pixels of each render (square, even); view: front | side | three_quarter; shading: shaded | normals;
@@ -356,8 +356,8 @@ register_config("preview_schema", PreviewConfig)
 
 
 def run(cfg) -> PreviewReport:
-    """``python -m motion.preview``: render the clip(s) and print the report."""
-    settings = to_dataclass(cfg, PreviewConfig, where="motion.preview")
+    """``python -m scene.preview``: render the clip(s) and print the report."""
+    settings = to_dataclass(cfg, PreviewConfig, where="scene.preview")
     clips = [(settings.source, settings.rig)] + ([(settings.second, settings.second_rig)] if settings.second else [])
     panels = []
     for source, rig_override in clips:
@@ -375,7 +375,3 @@ def run(cfg) -> PreviewReport:
                 raise OSError(f"{settings.still}: OpenCV could not write the image")
         print(f"wrote {settings.still}")
     return report
-
-
-if __name__ == "__main__":
-    run_cli("preview", run, doc=__doc__)

@@ -28,7 +28,7 @@ Conventions (the project's, owned here):
   subject's left, +z lateral bending to the right) is its bone frame turned by the quarter-turn rotation that best
   aligns it with the world axes at rest (``anatomical_axes`` [J,3,3], the
   anatomical axes as columns in bone coordinates).  Joint limits and priors
-  (``models.joint_limits``) speak anatomical frames: convert with
+  (``data.joint_limits``) speak anatomical frames: convert with
   ``to_anatomical(theta)`` / ``from_anatomical(theta_anatomical)``.
 - Skinning: ``"lbs"`` (the release's linear blend skinning, the default) or ``"dqs"`` (dual quaternions:
   no volume loss under twist), per model (``HeadNeckModel(rig, skinning=...)``) or per call
@@ -60,10 +60,10 @@ import torch.nn.functional as F
 from torch import nn
 from torch.autograd.function import once_differentiable
 
+from base.rotations import axis_angle_to_matrix, matrix_to_quaternion, quaternion_multiply
+from base.threads import single_thread
 from data.assets import RigData
 from data.procedural_rig import build_procedural_rig
-from models.rotations import axis_angle_to_matrix, matrix_to_quaternion, quaternion_multiply
-from models.threads import single_thread
 
 SKINNINGS = ("lbs", "dqs")
 
@@ -179,7 +179,7 @@ def linear_blend_skinning(vertices: torch.Tensor, weights: torch.Tensor, transfo
 
 def rigid_to_dual_quaternion(transforms: torch.Tensor) -> torch.Tensor:
     """Rigid transforms [...,3,4] ``(R | t)`` -> unit dual quaternions [...,8]: the real part ``q = quat(R)``
-    (w, x, y, z; w >= 0) then the dual part ``1/2 (0, t) q`` (Hamilton product, ``models.rotations``)."""
+    (w, x, y, z; w >= 0) then the dual part ``1/2 (0, t) q`` (Hamilton product, ``base.rotations``)."""
     real = matrix_to_quaternion(transforms[..., :3, :3])
     translation = transforms[..., :3, 3]
     pure = torch.cat([torch.zeros_like(translation[..., :1]), translation], dim=-1)

@@ -3,7 +3,7 @@
 Angles are Euler angles of each joint's rotation in its *anatomical* frame
 (``HeadNeckModel.to_anatomical``; on the built-in rig the bone frames are
 anatomical already, on the release oc1's is not), with
-``R = Rz(az) Ry(ay) Rx(ax)`` (``models.rotations``): ``ax`` flexion (+) /
+``R = Rz(az) Ry(ay) Rx(ax)`` (``base.rotations``): ``ax`` flexion (+) /
 extension (-), ``ay`` axial rotation (+ = to the subject's left), ``az``
 lateral bending (+ = to the subject's right).
 
@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from models.rotations import axis_angle_to_euler, euler_to_axis_angle
+from base.rotations import axis_angle_to_euler, euler_to_axis_angle
 
 JOINT_LEVELS = ("C7-T1", "C6-C7", "C5-C6", "C4-C5", "C3-C4", "C2-C3", "C1-C2", "O-C1")  # root to head
 

@@ -38,13 +38,12 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from data.cli import run_cli
-from data.errors import InputError
+from base.errors import InputError
+from base.files import save_npz
+from base.timebase import resample_uniform
 from data.expressions import EXPRESSION_NAMES, NUM_EXPRESSIONS, ExpressionTrack, check_weights, read_expressions
-from data.files import save_npz
 from data.splits import split_by_file
 from data.tau_track import TauTrack, read_tau_track
-from data.timebase import resample_uniform
 
 
 @dataclass
@@ -226,7 +225,3 @@ def run(cfg: DictConfig) -> LarynxSequence:
     save_pair(cfg.out, pair, time)
     print(f"{cfg.out}: {len(pair)} frames at {pair.fps:g} fps ({time[0]:.3f}-{time[-1]:.3f} s of {cfg.expressions})")
     return pair
-
-
-if __name__ == "__main__":
-    run_cli("pairs", run)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data.errors import InputError, require_file
+from base.errors import InputError, require_file
 
 
 @contextlib.contextmanager

@@ -1,6 +1,6 @@
 """Animated glTF 2.0 (``.glb``) export of a rig driven by a ``params.npz``: Blender, Unity, three.js.
 
-    python -m data.gltf source=params.npz out=anim.glb [rig=rig.npz] [character=giraffe] [max_influences=8|4]
+    python -m scene.gltf source=params.npz out=anim.glb [rig=rig.npz] [character=giraffe] [max_influences=8|4]
 
 One binary glTF holds the character at its real size and its whole clip:
 
@@ -38,15 +38,15 @@ import pygltflib as gl
 import torch
 from omegaconf import MISSING
 
-from data.characters import load_character
-from data.cli import register_config, run_cli, to_dataclass
-from data.errors import InputError
-from data.files import atomic_path
+from base.cli import register_config, to_dataclass
+from base.errors import InputError
+from base.files import atomic_path
+from base.rotations import axis_angle_to_matrix, matrix_to_quaternion
 from data.mesh_io import triangulate
 from data.params import AnimationParams, check_rig, load_params, rig_path
-from data.render import outward_faces, vertex_normals
 from models.rig import HeadNeckModel
-from models.rotations import axis_angle_to_matrix, matrix_to_quaternion
+from scene.characters import load_character
+from scene.render import outward_faces, vertex_normals
 
 METRES_PER_CM = 0.01
 # Skin influences a glTF vertex carries: JOINTS_0/WEIGHTS_0 (4) and JOINTS_1/WEIGHTS_1 (4 more).
@@ -563,7 +563,7 @@ def export_error_cm(export: ExportData, rig: HeadNeckModel, params: AnimationPar
 def build_gltf(export: ExportData, rig: HeadNeckModel, params: AnimationParams, extras: dict | None = None) -> gl.GLTF2:
     """The glTF document (with its binary blob set) of ``export``."""
     data = rig.rig
-    gltf = gl.GLTF2(asset=gl.Asset(version="2.0", generator="hackneck data.gltf (pygltflib)",
+    gltf = gl.GLTF2(asset=gl.Asset(version="2.0", generator="hackneck scene.gltf (pygltflib)",
                                    extras=extras or {}))
     b = _Builder(gltf)
     split = export.split
@@ -678,10 +678,10 @@ def export_glb(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
 
 @dataclass
 class GltfConfig:
-    """``python -m data.gltf`` settings (``configs/gltf.yaml``).
+    """``python -m scene.gltf`` settings (``configs/gltf.yaml``).
 
     source: params.npz; out: the .glb; rig: a rig file overriding the one recorded in source;
-    character: human | giraffe | a character file, built on ``rig`` (``data.characters``); max_influences: 8 or 4;
+    character: human | giraffe | a character file, built on ``rig`` (``scene.characters``); max_influences: 8 or 4;
     larynx_error_cm: larynx morph-target bound; check: evaluate the file's data against the rig;
     morph_normals: store the morph targets' normal changes.
     """
@@ -710,7 +710,7 @@ def resolve_rig(params: AnimationParams, source: str | os.PathLike, rig: str | N
                 character: str | None = None) -> HeadNeckModel:
     """The rig ``params`` drive, checked against them (joints, expressions, checksum).
 
-    ``character`` (``human``, ``giraffe`` or a character file; ``data.characters.load_character``) built
+    ``character`` (``human``, ``giraffe`` or a character file; ``scene.characters.load_character``) built
     on ``rig`` (a rig file; default the built-in rig); else ``rig``; else the rig recorded in ``params``
     (a file, the built-in rig, or ``character:<name>`` built on the built-in rig).
     """
@@ -729,15 +729,11 @@ def resolve_rig(params: AnimationParams, source: str | os.PathLike, rig: str | N
 
 
 def run(cfg) -> ExportReport:
-    """``python -m data.gltf``: export and print the report."""
-    settings = to_dataclass(cfg, GltfConfig, where="data.gltf")
+    """``python -m scene.gltf``: export and print the report."""
+    settings = to_dataclass(cfg, GltfConfig, where="scene.gltf")
     params = load_params(settings.source)
     rig = resolve_rig(params, settings.source, settings.rig, settings.character)
     report = export_glb(params, rig, settings.out, settings.max_influences, settings.larynx_error_cm,
                         settings.check, source=settings.source, morph_normals=settings.morph_normals)
     print(report.summary())
     return report
-
-
-if __name__ == "__main__":
-    run_cli("gltf", run, doc=__doc__)

@@ -17,14 +17,12 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
-from data.cli import REQUIRED, register_config, run_cli
-from data.errors import InputError
-from data.files import write_text
+from base.cli import REQUIRED, register_config
+from base.errors import InputError
+from base.files import write_text
 from models.checkpoint import load_checkpoint, load_model, save_checkpoint
 
-PRETRAINED = Path(__file__).resolve().parent / "pretrained"
+PRETRAINED = Path(__file__).resolve().parent
 MANIFEST = PRETRAINED / "manifest.json"
 # The default model of each task, used by infer.py when no checkpoint is given.
 DEFAULTS = {"larynx_transformer": "larynx_transformer", "head2neck": "head2neck",
@@ -144,8 +142,3 @@ def run(cfg) -> None:
     entry = ship(cfg.run, cfg.name, cfg.command, cfg.checkpoint)
     print(f"{PRETRAINED / entry['file']}: {entry['bytes'] / 1e6:.2f} MB, sha256 {entry['sha256'][:12]}..., "
           f"task {entry['task']}")
-
-
-if __name__ == "__main__":
-    torch.set_num_threads(1)
-    run_cli("pretrained", run, doc=__doc__)

@@ -1,7 +1,7 @@
 """Characters: same-topology rigs (HACK's template, its own joints), and a procedural giraffe built from any rig.
 
-    python -m data.characters kind=giraffe [rig=hack_rig.npz] out=giraffe.npz
-    python -m data.characters kind=obj obj=my_giraffe.obj joints=my_bones.json [rig=hack_rig.npz] out=mine.npz
+    python -m scene.characters kind=giraffe [rig=hack_rig.npz] out=giraffe.npz
+    python -m scene.characters kind=obj obj=my_giraffe.obj joints=my_bones.json [rig=hack_rig.npz] out=mine.npz
 
 A character is a :class:`data.assets.RigData` (``models.rig.HeadNeckModel`` poses it) with the template's
 vertex count, faces and UVs, and its own 8 cervical joint rest frames, skinning weights, expression deltas
@@ -57,9 +57,9 @@ import scipy.sparse.linalg as spla
 import torch
 from omegaconf import MISSING
 
+from base.cli import register_config, to_dataclass
+from base.errors import InputError, require_file
 from data.assets import JOINT_NAMES, RigData, rest_transforms_from_bones
-from data.cli import register_config, run_cli, to_dataclass
-from data.errors import InputError, require_file
 from data.mesh_io import read_obj, triangulate
 from models.rig import HeadNeckModel
 
@@ -737,7 +737,7 @@ def load_character(spec: str, source: RigData, settings: GiraffeSettings | None 
     path = Path(spec)
     if path.suffix.lower() == ".obj":
         raise InputError(f"{spec}: an OBJ character needs its joints; make it first with "
-                         f"python -m data.characters kind=obj obj={spec} joints=bones.json out=character.npz")
+                         f"python -m scene.characters kind=obj obj={spec} joints=bones.json out=character.npz")
     if path.suffix.lower() != ".npz" and not path.exists():
         raise InputError(f"character={spec}: expected {' | '.join(CHARACTER_NAMES)} or a character file (.npz)")
     return RigData.load(path)
@@ -748,7 +748,7 @@ def load_character(spec: str, source: RigData, settings: GiraffeSettings | None 
 
 @dataclass
 class CharactersConfig:
-    """``python -m data.characters`` settings (``configs/characters.yaml``).
+    """``python -m scene.characters`` settings (``configs/characters.yaml``).
 
     kind: giraffe (built from ``rig``) or obj (``obj`` + ``joints`` on ``rig``'s topology); rig: the source
     rig file (None / builtin: the built-in rig); out: the character file (.npz); check: count the rest
@@ -775,8 +775,8 @@ register_config("characters_schema", CharactersConfig)
 
 
 def run(cfg) -> RigData:
-    """``python -m data.characters``: build or load the character, check it, save it."""
-    settings = to_dataclass(cfg, CharactersConfig, where="data.characters")
+    """``python -m scene.characters``: build or load the character, check it, save it."""
+    settings = to_dataclass(cfg, CharactersConfig, where="scene.characters")
     started = time.perf_counter()
     base = HeadNeckModel.from_config(settings.rig).rig
     if settings.kind == "giraffe":
@@ -803,7 +803,3 @@ def run(cfg) -> RigData:
     lines.append(f"wrote {settings.out}")
     print("\n".join(lines))
     return character
-
-
-if __name__ == "__main__":
-    run_cli("characters", run, doc=__doc__)

@@ -22,14 +22,14 @@ Inputs (``input_format=auto`` picks by suffix and shape):
 - ``csv``: an expression capture read by ``data.expressions.read_expressions`` with ``HeadYaw,
   HeadPitch, HeadRoll`` columns (its ``head_ypr``).
 
-Yaw/pitch/roll convention (``models.rotations.ypr_to_matrix``), in the rig's world frame::
+Yaw/pitch/roll convention (``base.rotations.ypr_to_matrix``), in the rig's world frame::
 
     R = Ry(yaw) @ Rx(pitch) @ Rz(roll)        (intrinsic: yaw, then pitch, then roll)
 
 - yaw about +y (up): + turns the face towards the subject's left;
 - pitch about +x (the subject's left): + is flexion, the face looks down;
 - roll about +z (forward): + tilts the head towards the subject's right shoulder.
-Each sign is the rig's joint convention (``models.rotations``) applied to the whole head.
+Each sign is the rig's joint convention (``base.rotations``) applied to the whole head.
 
 ARKit / Live Link Face ``HeadYaw, HeadPitch, HeadRoll``: ARKit's face anchor frame is x towards the
 face's own left, y up, z out of the face (Apple, ``ARFaceAnchor`` documentation), the rig's frame, so
@@ -60,16 +60,16 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from data.cli import REQUIRED, register_config, run_cli, to_dataclass
-from data.errors import InputError
+from base.cli import REQUIRED, register_config, to_dataclass
+from base.errors import InputError
+from base.files import load_npy, save_npy
+from base.rotations import ypr_to_matrix
 from data.expressions import read_expressions
-from data.files import load_npy, save_npy
+from data.joint_limits import within_limits
 from models.checkpoint import load_model
 from models.head2neck import head_error_deg, predict_theta
-from models.joint_limits import within_limits
 from models.pretrained import default_checkpoint
 from models.rig import HeadNeckModel
-from models.rotations import ypr_to_matrix
 
 INPUT_FORMATS = ("auto", "matrix", "ypr", "csv")
 UNITS = {"rad": 1.0, "deg": np.pi / 180.0, "halfturn": np.pi}
@@ -208,7 +208,3 @@ def run(cfg: DictConfig) -> np.ndarray:
     else:
         print("joints outside the limits: none")
     return theta.numpy()
-
-
-if __name__ == "__main__":
-    run_cli("head2neck", run, doc=__doc__)
