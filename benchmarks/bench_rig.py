@@ -5,8 +5,9 @@
         [--quiet-wait 60] [--no-release]
 
 Batch of 64 frames, all 55 expressions active, random poses and tau, CPU, ``HeadNeckModel.forward``
-(``models/rig/__init__.py``) against the release's algorithm (``tests/reference_hack.py``: a dense 4x4 blended per
-vertex, float32) on the same inputs in the same run, under three conditions:
+(``models/rig/model.py``, its engine ``models/rig/engine.py``) against the release's algorithm
+(``tests/reference_hack.py``: a dense 4x4 blended per vertex, float32) on the same inputs in the same run,
+under three conditions:
 
 - idle: nothing started beside it.  The machine may be shared: the CPU time other processes took during
   each measurement is printed ("others", in cores, from /proc/stat), and with ``--quiet-wait S`` each idle

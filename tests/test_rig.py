@@ -312,3 +312,30 @@ def test_backward_in_chunks_on_threads_matches_one_thread(builtin_rig, skinning)
 
 def test_empty_batch(builtin_rig):
     assert builtin_rig(torch.zeros(0, 8, 3)).shape == (0, builtin_rig.num_vertices, 3)
+
+
+@pytest.mark.parametrize("skinning", ["lbs", "dqs"])
+@pytest.mark.parametrize("batch, size, threads", [(1, None, 1), (3, 64, 1), (3, 64, 2), (16, 500, 2),
+                                                  (16, None, 2), (40, 1000, 1), (5, 100000, 2)])
+def test_engine_equals_the_reference_path(builtin_rig, skinning, batch, size, threads):
+    """The chunked, threaded engine (``forward``) and ``pose_vertices`` (``pose_reference``, plain torch over the
+    whole mesh) agree, with expressions, shapes, tau and eta, for chunk sizes from 64 vertices to the whole
+    mesh and 1 or 2 threads."""
+    from base.threads import single_thread
+
+    theta, psi, tau, eta, beta = random_inputs(builtin_rig, batch, seed=batch, scale=1.0)
+    tau = tau * 4  # up to +-0.2: the larynx selection leaves vertices out
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        with torch.no_grad(), single_thread():
+            posed = builtin_rig._pose(theta, psi, tau, eta, beta, None, skinning, threads, size)
+        with torch.no_grad():
+            expected = builtin_rig.pose_reference(theta, psi, tau, eta, beta, skinning=skinning)
+            default = builtin_rig(theta, psi, tau, eta, beta, skinning=skinning)
+    finally:
+        torch.set_num_threads(before)
+    assert posed.shape == expected.shape == (batch, builtin_rig.num_vertices, 3)
+    assert float((posed - expected).abs().max()) < 2e-5
+    assert float((default - expected).abs().max()) < 2e-5
+    assert float((expected - builtin_rig.template).abs().max()) > 1.0  # the inputs do move the mesh
