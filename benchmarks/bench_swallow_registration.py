@@ -21,9 +21,9 @@ Data (``data.synthetic_tau``):
 Methods, each on the same clips:
 
 - ours: ``motion.swallow.build_template`` (detection, landmark selection, registration, mean);
-- five-landmark: a simple registration written here: rest from the first and last 0.3 s (linear),
-  10% and 50% crossings either side of the maximum and the maximum, piecewise-linear warps to the
-  mean landmarks, mean (the baseline issue 13 quotes for the recorded check);
+- five-landmark: ``motion.swallow.baseline``, a simple registration: rest from the first and last
+  0.3 s (linear), 10% and 50% crossings either side of the maximum and the maximum, piecewise-linear
+  warps to the mean landmarks, mean (the baseline issue 13 quotes for the recorded check);
 - naive: the clips averaged on time since their start (rest removed with the true offset);
 - skfda landmark elastic (optional, ``pip install ".[bench]"``): scikit-fda's
   ``landmark_elastic_registration`` on the five landmarks above, on a common 60 fps grid.
@@ -40,51 +40,18 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, for `python benchmarks/...`
 
 from data.synthetic_tau import SWALLOW_SHAPES, physiological_swallow_clips, swallow_profile, warped_swallow_clips  # noqa: E402
 from data.tau_track import TauTrack  # noqa: E402
-from motion.swallow import build_template, register_curves, template_error  # noqa: E402
+from motion.swallow import build_template, template_error  # noqa: E402
+from motion.swallow.baseline import five_landmark_mean, five_landmarks  # noqa: E402
 
 SCENARIOS = {
     "family": dict(noise=0.0015, drift=0.004, wander=0.0008, warp_strength=0.25),
     "family, harder": dict(noise=0.0015, drift=0.006, wander=0.0015, warp_strength=0.35),
 }
-
-
-def level_crossing(time, s, p, level, step):
-    """Time where ``s`` first falls to ``level`` x its value at sample ``p``, walking from ``p`` by ``step``."""
-    i = p
-    while 0 < i < len(s) - 1 and s[i] > level * s[p]:
-        i += step
-    j = i - step
-    return time[j] + (time[i] - time[j]) * (s[j] - level * s[p]) / (s[j] - s[i])
-
-
-def five_landmarks(clips):
-    """Rest-removed curves and [M,5] landmark times of the simple five-landmark registration."""
-    marks, curves = [], []
-    for c in clips:
-        n = int(round(0.3 * c.fps))
-        t0, t1 = c.time[:n].mean(), c.time[-n:].mean()
-        r0, r1 = np.median(c.tau[:n]), np.median(c.tau[-n:])
-        x = c.tau - (r0 + (r1 - r0) * (c.time - t0) / (t1 - t0))
-        s = gaussian_filter1d(x, 0.03 * c.fps)
-        p = int(np.argmax(s))
-        marks.append([level_crossing(c.time, s, p, 0.1, -1), level_crossing(c.time, s, p, 0.5, -1), c.time[p],
-                      level_crossing(c.time, s, p, 0.5, 1), level_crossing(c.time, s, p, 0.1, 1)])
-        curves.append(x)
-    return curves, np.array(marks)
-
-
-def five_landmark(clips):
-    curves, marks = five_landmarks(clips)
-    target = (marks - marks[:, :1]).mean(axis=0)
-    grid = np.arange(-0.4, target[-1] + 0.4, 1 / 60)
-    aligned = register_curves([c.time for c in clips], curves, marks, target, grid)
-    return grid, np.nanmean(aligned, axis=0)
 
 
 def naive(clips):
@@ -141,7 +108,7 @@ def main() -> None:
     parser.add_argument("--no-skfda", action="store_true")
     args = parser.parse_args()
     warnings.filterwarnings("ignore")
-    methods = {"ours": ours, "five-landmark": five_landmark, "naive": naive}
+    methods = {"ours": ours, "five-landmark": five_landmark_mean, "naive": naive}
     if not args.no_skfda:
         try:
             import skfda  # noqa: F401

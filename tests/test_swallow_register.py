@@ -6,13 +6,13 @@ stand-in for recorded swallows, ``physiological_swallow_clips``, built on anothe
 truth is the swallow itself: copies' warps and scales are not centred).  Template error as issue 13
 defines it (``template_error``): RMS after the best shift (within 1 s) and time scale (0.8-1.25),
 over the true swallow's duration, / its peak height.  The baselines: the naive unaligned mean, and
-a simple five-landmark registration (10% and 50% crossings and the peak, written here independently).
+the simple five-landmark registration (``motion.swallow.baseline``: 10% and 50% crossings and the
+peak, none of detection's code).
 """
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.ndimage import gaussian_filter1d
 
 from base.errors import InputError
 from data.synthetic_tau import (
@@ -30,10 +30,10 @@ from motion.swallow import (
     SwallowEvent,
     build_template,
     landmark_warps,
-    register_curves,
     select_landmarks,
     template_error,
 )
+from motion.swallow.baseline import five_landmark_mean
 
 
 def tracks_of(clips, prefix="clip"):
@@ -53,36 +53,6 @@ def naive_mean(clips):
     span = min(c.time[-1] for c in clips)
     time = np.arange(0.0, span, 1 / 60)
     return time, np.mean([np.interp(time, c.time, c.tau - c.offset) for c in clips], axis=0)
-
-
-def level_crossing(time, s, p, level, step):
-    """Time where ``s`` first falls to ``level`` x its value at sample ``p``, walking from ``p`` by ``step``."""
-    i = p
-    while 0 < i < len(s) - 1 and s[i] > level * s[p]:
-        i += step
-    j = i - step
-    return time[j] + (time[i] - time[j]) * (s[j] - level * s[p]) / (s[j] - s[i])
-
-
-def five_landmark_mean(clips):
-    """A simple five-landmark registration: rest from the first and last 0.3 s, 10% and 50% crossings either
-    side of the maximum and the maximum itself, piecewise-linear warps to the mean landmarks, mean."""
-    marks, curves = [], []
-    for c in clips:
-        n = int(round(0.3 * c.fps))
-        t0, t1 = c.time[:n].mean(), c.time[-n:].mean()
-        r0, r1 = np.median(c.tau[:n]), np.median(c.tau[-n:])
-        x = c.tau - (r0 + (r1 - r0) * (c.time - t0) / (t1 - t0))
-        s = gaussian_filter1d(x, 0.03 * c.fps)
-        p = int(np.argmax(s))
-        marks.append([level_crossing(c.time, s, p, 0.1, -1), level_crossing(c.time, s, p, 0.5, -1), c.time[p],
-                      level_crossing(c.time, s, p, 0.5, 1), level_crossing(c.time, s, p, 0.1, 1)])
-        curves.append(x)
-    marks = np.array(marks)
-    target = (marks - marks[:, :1]).mean(axis=0)
-    grid = np.arange(-0.4, target[-1] + 0.4, 1 / 60)
-    aligned = register_curves([c.time for c in clips], curves, marks, target, grid)
-    return grid, np.nanmean(aligned, axis=0)
 
 
 # --------------------------------------------------------------------------- the error measure and the warps

@@ -25,7 +25,8 @@ from omegaconf import DictConfig
 from base.cli import as_list, register_config, to_dataclass
 from base.errors import InputError
 from data.tau_track import TauTrack, write_tau_track
-from motion.swallow.detect import DetectionConfig, uniform_track
+from motion.swallow.detect import uniform_track
+from motion.swallow.events import DetectionConfig
 from motion.swallow.files import plot_playback, plot_template, read_template, read_tracks, write_template
 from motion.swallow.play import PlaybackConfig, insert_swallows
 from motion.swallow.register import RegistrationConfig, TemplateBuild, build_template

@@ -35,7 +35,8 @@ from scipy.interpolate import PchipInterpolator
 
 from base.errors import InputError
 from data.tau_track import TauTrack
-from motion.swallow.detect import DetectionConfig, SwallowEvent, TrackAnalysis, analyse_track, uniform_track
+from motion.swallow.detect import analyse_track, uniform_track
+from motion.swallow.events import DetectionConfig, SwallowEvent, TrackAnalysis
 
 ALWAYS = ("rise50", "peak", "fall50")  # every swallow that is not broken has these
 
