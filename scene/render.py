@@ -23,8 +23,9 @@ generator ``scene.normal_sequences`` use them):
   :func:`larynx_point`: the area-weighted centroid of the posed surface where
   the larynx term exceeds ``LARYNX_CAP`` = 30 % of its maximum, weighted by
   the excess (eta = 1).
-- The rig is used through its public API only: ``rig(theta, psi, tau, eta)``,
-  ``rig.rest_shape``, ``rig.larynx_offsets``, ``rig.faces``, ``rig.neutral``.
+- The rig is a :class:`models.rig.HeadNeckModel`, used through its public API only:
+  ``rig(theta, psi, tau, eta)``, ``rig.rest_shape``, ``rig.larynx_offsets``, ``rig.faces``,
+  ``rig.neutral``.
 
 Public API (other tools build on it): :class:`Camera`, :func:`neck_camera`,
 :func:`render_normals` (-> :class:`NormalRender`), :class:`NeckRenderer`
@@ -47,6 +48,7 @@ import numpy as np
 import torch
 
 from data.mesh_io import triangulate
+from models.rig import HeadNeckModel
 
 DEFAULT_SIZE = 256          # pixels, square
 DEFAULT_CM_PER_PX = 0.08    # neck view: 256 px = 20.5 cm, the 70 px larynx kernel covers 5.6 cm
@@ -163,7 +165,7 @@ def vertex_areas(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 LARYNX_CAP = 0.3
 
 
-def larynx_areas(rig, triangles: torch.Tensor | None = None) -> torch.Tensor:
+def larynx_areas(rig: HeadNeckModel, triangles: torch.Tensor | None = None) -> torch.Tensor:
     """The template's surface area around each vertex [N] (cm^2; :func:`vertex_areas` of the rig's shape
     without a larynx, ``rig.rest_shape(eta=0)``): the constant part of :func:`larynx_point`'s weights,
     computed once per rig.  triangles [F,3]: the rig's faces triangulated (either winding); default:
@@ -175,7 +177,7 @@ def larynx_areas(rig, triangles: torch.Tensor | None = None) -> torch.Tensor:
     return vertex_areas(template, triangles)
 
 
-def larynx_point(rig, vertices: torch.Tensor, tau: torch.Tensor, areas: torch.Tensor) -> torch.Tensor:
+def larynx_point(rig: HeadNeckModel, vertices: torch.Tensor, tau: torch.Tensor, areas: torch.Tensor) -> torch.Tensor:
     """The larynx point [B,3] (cm): the ground-truth position the tracker reports.
 
     The centroid of the larynx's cap over the posed surface: the vertices ``vertices`` [B,N,3] weighted by
@@ -192,15 +194,15 @@ def larynx_point(rig, vertices: torch.Tensor, tau: torch.Tensor, areas: torch.Te
     return torch.einsum("bn,bnc->bc", weights, vertices) / weights.sum(1, keepdim=True).clamp_min(1e-12)
 
 
-def rest_larynx_point(rig) -> torch.Tensor:
+def rest_larynx_point(rig: HeadNeckModel) -> torch.Tensor:
     """The larynx point [3] at rest (theta 0, psi 0, tau 0, eta 1)."""
     with torch.no_grad():
         tau = torch.zeros(1)
         return larynx_point(rig, rig(rig.neutral(1), tau=tau), tau, larynx_areas(rig))[0]
 
 
-def neck_camera(rig, size: int = DEFAULT_SIZE, cm_per_px: float = DEFAULT_CM_PER_PX, perspective: bool = False,
-                distance: float = DEFAULT_DISTANCE, height: int | None = None) -> Camera:
+def neck_camera(rig: HeadNeckModel, size: int = DEFAULT_SIZE, cm_per_px: float = DEFAULT_CM_PER_PX,
+                perspective: bool = False, distance: float = DEFAULT_DISTANCE, height: int | None = None) -> Camera:
     """The default neck view: looking at the front of the neck from +z, centred on the rest larynx point."""
     centre = tuple(float(c) for c in rest_larynx_point(rig))
     return Camera(centre=centre, width=int(size), height=int(height or size), cm_per_px=float(cm_per_px),
@@ -374,7 +376,7 @@ class NeckRenderer:
     (``larynx_areas``) are computed once, here.
     """
 
-    rig: object
+    rig: HeadNeckModel
     camera: Camera | None = None
     faces: torch.Tensor = field(init=False)
     larynx_areas: torch.Tensor = field(init=False)

@@ -1,7 +1,7 @@
-"""python -m motion.retarget: see the settings in configs/retarget.yaml."""
+"""``python -m motion.retarget``: the command line (``motion.retarget.cli``)."""
 from base.cli import run_cli
-from motion.retarget import __doc__ as doc
-from motion.retarget import run
+from motion.retarget.cli import __doc__ as doc
+from motion.retarget.cli import run
 
 if __name__ == "__main__":
     run_cli("retarget", run, doc=doc)

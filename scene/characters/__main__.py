@@ -1,7 +1,7 @@
-"""python -m scene.characters: see the settings in configs/characters.yaml."""
+"""``python -m scene.characters``: the command line (``scene.characters.cli``)."""
 from base.cli import run_cli
-from scene.characters import __doc__ as doc
-from scene.characters import run
+from scene.characters.cli import __doc__ as doc
+from scene.characters.cli import run
 
 if __name__ == "__main__":
     run_cli("characters", run, doc=doc)
