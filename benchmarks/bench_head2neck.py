@@ -112,13 +112,13 @@ def accuracy(args) -> None:
 
 
 def training(args) -> None:
-    import train
     from base.cli import compose_config
+    from tasks import loop
 
     cfg = compose_config("train", ["task=head2neck"])
     with tempfile.TemporaryDirectory() as run_dir:
         start = time.perf_counter()
-        final = train.fit(cfg, Path(run_dir))
+        final = loop.fit(cfg, Path(run_dir))
         wall = time.perf_counter() - start
     print(f"default training run: {wall:.0f} s wall ({final['train_seconds']:.0f} s in the loop); "
           f"per-joint error {final['joint_err_deg']:.2f} deg (raw {final['model_raw_joint_err_deg']:.2f}) vs "

@@ -56,7 +56,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     from base.cli import compose_config, to_dataclass
-    from infer import load_models, run_take
+    from motion.pipeline.models import load_models
+    from motion.pipeline.take import run_take
 
     with tempfile.TemporaryDirectory() as tmp:
         capture = Path(tmp) / "capture.csv"

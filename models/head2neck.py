@@ -64,7 +64,6 @@ from dataclasses import dataclass, field, fields
 import torch
 from torch import nn
 
-from base.cli import register_config
 from base.errors import InputError
 from base.rotations import (
     axis_angle_to_euler,
@@ -165,9 +164,6 @@ class Head2NeckConfig:
             raise ValueError(f"input_scale={self.input_scale}: expected a positive scale")
         if self.base not in BASES:
             raise ValueError(f"base={self.base}: expected one of {', '.join(BASES)}")
-
-
-register_config("head2neck_schema", Head2NeckConfig, group="model")
 
 
 class Head2NeckMLP(nn.Module):

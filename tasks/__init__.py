@@ -1,4 +1,5 @@
-"""Training tasks.  ``train.py`` owns the loop; a task owns its model, data and losses.
+"""Training tasks: the registry of tasks and the train config.  ``tasks.loop`` owns the loop; a task owns
+its model, data and losses.
 
 A task module defines ``Task(cfg)`` with:
 - ``model``: the ``nn.Module`` being trained;
@@ -11,15 +12,15 @@ A task module defines ``Task(cfg)`` with:
 and a module function ``build_model(model_config) -> nn.Module``.
 
 Optional:
-- ``evaluate`` may return ``val_loss`` (lower is better): train.py then keeps ``checkpoints/best.pt``
+- ``evaluate`` may return ``val_loss`` (lower is better): the loop then keeps ``checkpoints/best.pt``
   and can stop early and evaluate the best weights (:class:`TrainerConfig`);
 - ``split_batch(batch, rank, world) -> batch``: this rank's share of the global batch under
-  ``torchrun``.  Without it train.py slices every tensor of the batch (a tensor, or tuples, lists and
+  ``torchrun``.  Without it the loop slices every tensor of the batch (a tensor, or tuples, lists and
   dicts of them; other values are passed unchanged) on dim 0, which must be the batch dimension of
-  all of them (``train.split_batch``);
+  all of them (``tasks.distributed.split_batch``);
 - ``to(device)``: move the model and everything the task computes with (data tensors, the rig) to
   ``device`` once, and from then on make the tensors it creates there (``batch`` may return tensors on
-  the CPU: train.py moves them).  Needed for ``trainer.device=cuda``.
+  the CPU: the loop moves them).  Needed for ``trainer.device=cuda``.
 
 Under ``torchrun`` (world size W), ``loss`` runs on each rank's slice of the global batch with
 ``self.model`` replaced by its ``DistributedDataParallel`` wrapper (attributes forwarded to the
@@ -45,7 +46,7 @@ TASKS = {
 
 @dataclass
 class OptimConfig:
-    """AdamW with linear warm-up then cosine decay of the learning rate (``train.lr_factor``)."""
+    """AdamW with linear warm-up then cosine decay of the learning rate (``tasks.loop.lr_factor``)."""
 
     lr: float = 1.0e-3
     betas: list[float] = field(default_factory=lambda: [0.9, 0.999])
@@ -59,7 +60,7 @@ DEVICES = ("auto", "cpu", "cuda")
 
 @dataclass
 class TrainerConfig:
-    """How long, how often, and on what the loop runs (``train.fit``).
+    """How long, how often, and on what the loop runs (``tasks.loop.fit``).
 
     Devices and processes:
     - ``device``: ``auto`` (CUDA when ``torch.cuda.is_available()``, else the CPU), ``cpu`` or ``cuda``

@@ -120,7 +120,8 @@ class ThetaSeqData:
             raise ValueError(f"prior_sequences is {self.prior_sequences}, expected at least 1")
 
 
-register_config("head2neck_schema", Head2NeckTaskConfig, group="task")
+register_config("head2neck_task_schema", Head2NeckTaskConfig, group="task")
+register_config("head2neck_model_schema", Head2NeckConfig, group="model")
 register_config("head2neck_synthetic_schema", SyntheticData, group="data_task")
 register_config("head2neck_theta_seq_schema", ThetaSeqData, group="data_task")
 

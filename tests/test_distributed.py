@@ -21,6 +21,7 @@ import tasks
 import train
 from base.errors import InputError
 from models.checkpoint import load_checkpoint
+from tasks import distributed, loop
 
 TIMEOUT = 600
 
@@ -56,7 +57,7 @@ def test_two_ranks_train_the_one_process_weights_and_resume_after_a_stop(tmp_pat
     2-rank checkpoint also resumes on one process."""
     overrides = ("trainer.eval_every=2",)
     one = tmp_path / "one"
-    train.fit(config(*overrides), one)
+    loop.fit(config(*overrides), one)
     torch.manual_seed(0)
     initial = tasks.build(config()).model.state_dict()
     assert max_difference(weights(one), initial) > 1e-3  # the weights moved
@@ -83,7 +84,7 @@ def test_two_ranks_train_the_one_process_weights_and_resume_after_a_stop(tmp_pat
         reference = [float(r["value"]) for r in rows(one) if r["split"] == "train" and r["name"] == name]
         assert mine == pytest.approx(reference, rel=1e-5)
 
-    train.fit(config(*overrides, "resume=true"), alone)  # another world size continues the same computation
+    loop.fit(config(*overrides, "resume=true"), alone)  # another world size continues the same computation
     assert max_difference(weights(alone), weights(one)) < 1e-6
 
 
@@ -92,7 +93,7 @@ def test_each_rank_takes_its_slice_of_the_batch():
     concatenate to the batch; values without a batch dimension pass unchanged; kinds are kept."""
     task = tasks.build(config())
     batch = task.batch(0, torch.Generator().manual_seed(0))
-    slices = [train.split_batch(batch, rank, 4) for rank in range(4)]
+    slices = [distributed.split_batch(batch, rank, 4) for rank in range(4)]
     for name, value in batch.items():
         assert all(len(s[name]) == 16 for s in slices)
         assert torch.equal(torch.cat([s[name] for s in slices]), value)
@@ -100,7 +101,7 @@ def test_each_rank_takes_its_slice_of_the_batch():
     Pair = collections.namedtuple("Pair", "x scale")
     nested = {"a": torch.arange(12.0).reshape(6, 2), "b": (torch.arange(6), 5, "text"),
               "c": [Pair(torch.arange(6.0) * 2, torch.tensor(3.0))]}
-    second = train.split_batch(nested, 1, 3)
+    second = distributed.split_batch(nested, 1, 3)
     assert torch.equal(second["a"], torch.tensor([[4.0, 5.0], [6.0, 7.0]]))
     assert isinstance(second["b"], tuple) and torch.equal(second["b"][0], torch.tensor([2, 3]))
     assert second["b"][1:] == (5, "text")
@@ -109,17 +110,17 @@ def test_each_rank_takes_its_slice_of_the_batch():
 
     with pytest.raises(InputError, match=r"the global batch of 6 samples does not split evenly over 4 processes: "
                                          r"choose a batch size \(task\.batch_size\) that is a multiple of 4"):
-        train.split_batch(nested, 0, 4)
+        distributed.split_batch(nested, 0, 4)
     with pytest.raises(TypeError, match=r"dim-0 sizes, expected one batch size; give the task a split_batch"):
-        train.split_batch({"a": torch.zeros(6, 2), "b": torch.zeros(5)}, 0, 2)
+        distributed.split_batch({"a": torch.zeros(6, 2), "b": torch.zeros(5)}, 0, 2)
 
 
 def test_ranks_draw_their_own_model_randomness():
     seed, step = 3, 7
-    assert train.rank_seed(seed, step, 0) == train.step_seeds(seed, step)[0]  # one process: unchanged
-    others = [train.rank_seed(seed, step, rank) for rank in range(1, 4)]
-    assert len(set(others) | set(train.step_seeds(seed, step))) == 5
-    assert train.rank_seed(seed, step + 1, 1) != others[0]
+    assert loop.rank_seed(seed, step, 0) == loop.step_seeds(seed, step)[0]  # one process: unchanged
+    others = [loop.rank_seed(seed, step, rank) for rank in range(1, 4)]
+    assert len(set(others) | set(loop.step_seeds(seed, step))) == 5
+    assert loop.rank_seed(seed, step + 1, 1) != others[0]
 
 
 def test_the_parallel_wrapper_forwards_the_task_models_attributes(tmp_path):
@@ -141,7 +142,7 @@ def test_the_parallel_wrapper_forwards_the_task_models_attributes(tmp_path):
     model = Model()
     dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'store'}", rank=0, world_size=1)
     try:
-        wrapped = train.TaskParallel(model)
+        wrapped = distributed.TaskParallel(model)
         assert wrapped.marker == "mine" and float(wrapped.scale) == 2.0 and wrapped.module is model
         x = torch.ones(4, 3)
         assert torch.equal(wrapped.shift(x), x + 1) and torch.equal(wrapped(x), model(x))
@@ -160,11 +161,11 @@ def test_the_parallel_wrapper_forwards_the_task_models_attributes(tmp_path):
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU is present")
 def test_cuda_and_mixed_precision_are_refused_without_a_gpu(tmp_path):
-    assert train.resolve_device("auto") == torch.device("cpu")
+    assert distributed.resolve_device("auto") == torch.device("cpu")
     with pytest.raises(InputError, match=r"^trainer\.device=cuda: no CUDA device is available here"):
-        train.fit(config("trainer.device=cuda"), tmp_path / "a")
+        loop.fit(config("trainer.device=cuda"), tmp_path / "a")
     with pytest.raises(InputError, match=r"^trainer\.amp=true: mixed precision runs on CUDA only"):
-        train.fit(config("trainer.amp=true"), tmp_path / "b")
+        loop.fit(config("trainer.amp=true"), tmp_path / "b")
     result = run([sys.executable, "train.py", "trainer.device=cuda", f"hydra.run.dir={tmp_path / 'c'}"], REPO)
     assert result.returncode == 2
     assert result.stderr.startswith("error: trainer.device=cuda: no CUDA device is available here")
@@ -181,12 +182,12 @@ def test_an_unknown_device_is_one_line_and_status_2(capsys):
 def test_a_cuda_run_of_a_task_that_cannot_move_is_refused(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
-    assert train.resolve_device("auto", 1, task_moves=False) == torch.device("cpu")
-    assert train.resolve_device("auto", 1, task_moves=True) == torch.device("cuda", 1)
+    assert distributed.resolve_device("auto", 1, task_moves=False) == torch.device("cpu")
+    assert distributed.resolve_device("auto", 1, task_moves=True) == torch.device("cuda", 1)
     with pytest.raises(InputError, match=r"this task cannot run on CUDA \(its Task has no to\(device\)"):
-        train.resolve_device("cuda", 0, task_moves=False)
+        distributed.resolve_device("cuda", 0, task_moves=False)
     with pytest.raises(InputError, match=r"the process of local rank 2 has no GPU \(2 on this machine\)"):
-        train.resolve_device("cuda", 2)
+        distributed.resolve_device("cuda", 2)
 
 
 def test_a_sweep_under_torchrun_and_untied_slurm_tasks_are_refused(monkeypatch, capsys):
@@ -197,10 +198,10 @@ def test_a_sweep_under_torchrun_and_untied_slurm_tasks_are_refused(monkeypatch, 
     monkeypatch.delenv("WORLD_SIZE")
     monkeypatch.setenv("SLURM_STEP_NUM_TASKS", "4")
     with pytest.raises(InputError, match=r"4 SLURM tasks run train\.py without torchrun's environment"):
-        train.launched_ranks()
+        distributed.launched_ranks()
     monkeypatch.setenv("WORLD_SIZE", "4")  # torchrun's workers inside a SLURM step
     monkeypatch.setenv("RANK", "3")
-    assert train.launched_ranks() == train.Ranks(3, 4, 0)
+    assert distributed.launched_ranks() == distributed.Ranks(3, 4, 0)
 
 
 # --------------------------------------------------------------------------- sweeps
@@ -212,7 +213,7 @@ def test_a_seed_sweep_writes_one_run_per_job(tmp_path):
     result = run([sys.executable, "train.py", "-m", "seed=0,1", *TINY, f"hydra.sweep.dir={sweep}"], REPO)
     assert result.returncode == 0, result.stderr[-3000:]
     single = tmp_path / "single"
-    train.fit(config("seed=0"), single)
+    loop.fit(config("seed=0"), single)
     for job in ("0", "1"):
         assert (sweep / job / "eval.json").is_file() and (sweep / job / ".hydra" / "overrides.yaml").is_file()
     assert max_difference(weights(sweep / "0"), weights(single)) == 0

@@ -21,7 +21,6 @@ from conftest import AXIAL_ONE_SIDE, QUARTER_TURN_X, QUARTER_TURN_Y
 from hydra import compose, initialize_config_dir
 from scipy.spatial.transform import Rotation
 
-import train
 from base.cli import compose_config
 from base.errors import InputError
 from base.files import save_npy, write_csv
@@ -49,6 +48,7 @@ from models.head2neck import (
     split_head_rotation,
 )
 from motion.head2neck import read_head_rotations, run
+from tasks import loop
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIGS = str(REPO / "configs")
@@ -82,7 +82,7 @@ def tiny_run(tmp_path_factory):
             "task=head2neck", "model.hidden=[128,128]", "trainer.max_steps=400", "trainer.eval_every=0",
             "trainer.checkpoint_every=400", "trainer.progress=false", "trainer.threads=1",
             "data.train_sequences=192", "data.val_sequences=24", "task.batch_size=512"])
-    return train.fit(cfg, run_dir), run_dir
+    return loop.fit(cfg, run_dir), run_dir
 
 
 @pytest.fixture(scope="module")
@@ -453,7 +453,7 @@ def test_theta_seq_data_in_bone_frames_is_learnt_and_scored_on_a_held_out_file(t
                                                      atol=1e-6)]
     assert len(held_out) == 1
     (tmp_path / "run").mkdir()
-    final = train.fit(cfg, tmp_path / "run")
+    final = loop.fit(cfg, tmp_path / "run")
     model, _ = load_model(tmp_path / "run" / "checkpoints" / "last.pt", task="head2neck")
     head, truth = task.val["head"], anatomical[held_out[0]]
     bone = predict_theta(model, turned_rig, head)

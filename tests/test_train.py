@@ -1,4 +1,5 @@
-"""The training loop (train.py) and checkpoints (models/checkpoint.py): resume checks, metrics, seeds, loading.
+"""The training loop (tasks.loop, run by train.py) and checkpoints (models/checkpoint.py): resume checks,
+metrics, seeds, loading.
 
 Runs are tiny head2neck trainings (a few steps on a few synthetic sequences): the loop is task-agnostic.
 """
@@ -13,9 +14,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import tasks
-import train
 from base.errors import InputError
 from models.checkpoint import load_checkpoint, load_model, save_checkpoint
+from tasks import loop
 
 REPO = Path(__file__).resolve().parents[1]
 MAX_STEPS = 6
@@ -46,26 +47,26 @@ def weights(run_dir: Path) -> dict:
 def reference(tmp_path_factory):
     """An uninterrupted run (logging every third step only: run control, not what is computed)."""
     run_dir = tmp_path_factory.mktemp("reference")
-    train.fit(config("trainer.log_every=3"), run_dir)
+    loop.fit(config("trainer.log_every=3"), run_dir)
     return run_dir
 
 
 def test_resume_refuses_another_config_and_accepts_other_run_control(tmp_path, reference):
     run_dir = tmp_path / "run"
-    train.fit(config("trainer.stop_after=3"), run_dir)
+    loop.fit(config("trainer.stop_after=3"), run_dir)
     assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["step"] == 3
     lr = config().optim.lr
     assert lr != 0.01
     with pytest.raises(InputError, match=r"last\.pt: resume=true with a config that differs from the checkpoint's "
                                          + re.escape(f"(optim.lr: {lr!r} -> 0.01); only resume, trainer.stop_after")):
-        train.fit(config("resume=true", "optim.lr=0.01"), run_dir)
+        loop.fit(config("resume=true", "optim.lr=0.01"), run_dir)
     with pytest.raises(InputError, match=r"data\.seed: 1 -> 5; model\.hidden: \[16\] -> \[32\]"):
-        train.fit(config("resume=true", "data.seed=5", "model.hidden=[32]"), run_dir)
+        loop.fit(config("resume=true", "data.seed=5", "model.hidden=[32]"), run_dir)
     with pytest.raises(InputError,
                        match="checkpoint of task 'head2neck', but resume=true runs task 'larynx_transformer'"):
-        train.fit(compose_larynx("resume=true"), run_dir)
+        loop.fit(compose_larynx("resume=true"), run_dir)
     # stop_after and log_every differ from the first part: allowed, and the weights are the uninterrupted run's
-    train.fit(config("resume=true", "trainer.log_every=2"), run_dir)
+    loop.fit(config("resume=true", "trainer.log_every=2"), run_dir)
     assert (run_dir / "eval.json").is_file()
     resumed, uninterrupted = weights(run_dir), weights(reference)
     assert resumed.keys() == uninterrupted.keys()
@@ -81,7 +82,7 @@ def test_resume_drops_the_metrics_logged_after_the_checkpoint(tmp_path, monkeypa
     from tasks.head2neck import Task
 
     whole = tmp_path / "whole"
-    train.fit(config(), whole)
+    loop.fit(config(), whole)
     loss = Task.loss
 
     def interrupted(self, batch, step):
@@ -92,11 +93,11 @@ def test_resume_drops_the_metrics_logged_after_the_checkpoint(tmp_path, monkeypa
     run_dir = tmp_path / "run"
     monkeypatch.setattr(Task, "loss", interrupted)
     with pytest.raises(RuntimeError, match="interrupted"):
-        train.fit(config(), run_dir)
+        loop.fit(config(), run_dir)
     monkeypatch.undo()
     checkpoint_step = load_checkpoint(run_dir / "checkpoints" / "last.pt")["step"]
     assert checkpoint_step == MAX_STEPS - 2 and {int(r["step"]) for r in rows(run_dir)} == set(range(1, MAX_STEPS))
-    train.fit(config("resume=true"), run_dir)
+    loop.fit(config("resume=true"), run_dir)
     resumed = rows(run_dir)
     keys = [(r["step"], r["split"], r["name"]) for r in resumed]
     assert len(keys) == len(set(keys))  # no step logged twice
@@ -106,13 +107,13 @@ def test_resume_drops_the_metrics_logged_after_the_checkpoint(tmp_path, monkeypa
 
 
 def test_step_seeds_give_independent_streams():
-    seeds = [seed for step in range(4) for seed in train.step_seeds(0, step)]
-    assert len(set(seeds)) == 8 and train.step_seeds(1, 0) != train.step_seeds(0, 0)
-    global_seed, batch_seed = train.step_seeds(0, 0)
+    seeds = [seed for step in range(4) for seed in loop.step_seeds(0, step)]
+    assert len(set(seeds)) == 8 and loop.step_seeds(1, 0) != loop.step_seeds(0, 0)
+    global_seed, batch_seed = loop.step_seeds(0, 0)
     first = torch.rand(16, generator=torch.Generator().manual_seed(global_seed))
     second = torch.rand(16, generator=torch.Generator().manual_seed(batch_seed))
     assert (first - second).abs().min() > 0  # no shared draws
-    assert train.step_seeds(0, 3) == train.step_seeds(0, 3)
+    assert loop.step_seeds(0, 3) == loop.step_seeds(0, 3)
 
 
 def test_checkpoints_load_without_running_pickled_code(tmp_path, reference):
@@ -140,7 +141,7 @@ def test_a_checkpoint_of_another_layout_is_named(tmp_path, reference):
     run_dir = tmp_path / "run"
     save_checkpoint(run_dir / "checkpoints" / "last.pt", load_checkpoint(tmp_path / "old.pt"))
     with pytest.raises(InputError, match=r"last\.pt: checkpoint written by an incompatible version of the code"):
-        train.fit(config("resume=true"), run_dir)
+        loop.fit(config("resume=true"), run_dir)
 
 
 def test_cli_refused_resume_is_an_error_with_status_2(tmp_path):
@@ -169,9 +170,9 @@ def test_cli_refused_data_leaves_no_run_folder(tmp_path):
     assert f"error: {tmp_path / 'missing'}: not a folder" in result.stderr and "Traceback" not in result.stderr
     assert not run_dir.exists(), list(run_dir.rglob("*"))
     # the default run folder (runs/<task>/<time>) of a first run: runs/ is not left behind either
-    result = subprocess.run([sys.executable, str(REPO / "train.py"), "task=larynx_transformer", "task.rehearsal=1.5",
+    result = subprocess.run([sys.executable, str(REPO / "train.py"), "task=head2neck", "task.lambda_fk=-1",
                              "trainer.progress=false"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert result.returncode == 2 and "error: task.rehearsal must be in [0, 1), got 1.5" in result.stderr, result.stderr
+    assert result.returncode == 2 and "lambda_fk=-1.0: expected a non-negative weight" in result.stderr, result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == [], list(tmp_path.rglob("*"))
 
 
@@ -179,8 +180,8 @@ def test_cli_refused_data_leaves_no_run_folder(tmp_path):
 
 
 def test_single_process_run_is_the_documented_loop(tmp_path, monkeypatch):
-    """train.fit on one process (with the distributed, device and AMP code in place) gives bit-identical weights
-    to the loop of train.py's docstring written out here: seed, build, then per step the two step seeds, the
+    """loop.fit on one process (with the distributed, device and AMP code in place) gives bit-identical weights
+    to the loop of tasks.loop's docstring written out here: seed, build, then per step the two step seeds, the
     batch, AdamW with the warm-up/cosine factor, clipping.  The loss draws from torch's global generator (as
     dropout would), so its seeding counts too."""
     from tasks.head2neck import Task
@@ -189,17 +190,17 @@ def test_single_process_run_is_the_documented_loop(tmp_path, monkeypatch):
     monkeypatch.setattr(Task, "loss", lambda self, batch, step: (lambda l, m: (l * (1 + torch.rand(())), m))(
         *original(self, batch, step)))
     cfg = config("trainer.grad_clip=0.002", "trainer.eval_every=3")
-    train.fit(cfg, tmp_path / "run")
+    loop.fit(cfg, tmp_path / "run")
     torch.manual_seed(cfg.seed)
     task = tasks.build(cfg)
     model = task.model
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.optim.lr, betas=tuple(cfg.optim.betas),
                                   weight_decay=cfg.optim.weight_decay)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: train.lr_factor(
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: loop.lr_factor(
         s, cfg.optim.warmup_steps, MAX_STEPS, cfg.optim.min_lr_factor))
     clipped = 0
     for step in range(MAX_STEPS):
-        global_seed, batch_seed = train.step_seeds(cfg.seed, step)
+        global_seed, batch_seed = loop.step_seeds(cfg.seed, step)
         torch.manual_seed(global_seed)
         batch = task.batch(step, torch.Generator().manual_seed(batch_seed))
         model.train()
@@ -237,11 +238,11 @@ def test_warm_up_rises_linearly_to_the_learning_rate(tmp_path, monkeypatch):
     torch.manual_seed(cfg.seed)
     initial = {k: v.clone() for k, v in tasks.build(cfg).model.state_dict().items()}
     records = optimiser_steps(monkeypatch)
-    train.fit(cfg, tmp_path / "all")
+    loop.fit(cfg, tmp_path / "all")
     expected = [lr * (s + 1) / warmup for s in range(warmup)] + [lr]
     assert [r["lr"] for r in records[:warmup + 1]] == pytest.approx(expected, rel=1e-12)
     assert records[warmup + 1]["lr"] < lr  # then the cosine decays
-    train.fit(config(f"optim.warmup_steps={warmup}", f"optim.lr={lr}", "trainer.stop_after=1"), tmp_path / "one")
+    loop.fit(config(f"optim.warmup_steps={warmup}", f"optim.lr={lr}", "trainer.stop_after=1"), tmp_path / "one")
     moved = max(float((weights(tmp_path / "one")[k] - v).abs().max()) for k, v in initial.items())
     assert moved == pytest.approx(lr / warmup, rel=1e-3)
 
@@ -254,10 +255,10 @@ def test_gradient_clipping_bounds_the_gradient_of_a_huge_loss(tmp_path, monkeypa
     monkeypatch.setattr(Task, "loss", lambda self, batch, step: (lambda l, m: (l * 1e6, m))(
         *original(self, batch, step)))
     records = optimiser_steps(monkeypatch)
-    train.fit(config("trainer.grad_clip=1.0"), tmp_path / "clipped")
+    loop.fit(config("trainer.grad_clip=1.0"), tmp_path / "clipped")
     clipped = [r["grad_norm"] for r in records]
     records.clear()
-    train.fit(config("trainer.grad_clip=0"), tmp_path / "free")
+    loop.fit(config("trainer.grad_clip=0"), tmp_path / "free")
     free = [r["grad_norm"] for r in records]
     assert len(clipped) == len(free) == MAX_STEPS
     assert clipped == pytest.approx([1.0] * MAX_STEPS, rel=1e-5)
@@ -272,10 +273,10 @@ def test_validation_during_training_scores_that_step_and_survives_an_interruptio
     evaluation of that step's weights; a run stopped at a validation step and resumed logs exactly the rows
     and trains exactly the weights of the uninterrupted run."""
     whole = tmp_path / "whole"
-    train.fit(config("trainer.eval_every=2"), whole)
+    loop.fit(config("trainer.eval_every=2"), whole)
     assert sorted({int(r["step"]) for r in rows(whole) if r["split"] == "val"}) == [2, 4]
     part = tmp_path / "part"
-    train.fit(config("trainer.eval_every=2", "trainer.stop_after=4"), part)
+    loop.fit(config("trainer.eval_every=2", "trainer.stop_after=4"), part)
     model, _ = load_model(part / "checkpoints" / "last.pt")
     cfg = config("trainer.eval_every=2")
     torch.manual_seed(cfg.seed)
@@ -286,7 +287,7 @@ def test_validation_during_training_scores_that_step_and_survives_an_interruptio
     logged = {r["name"]: float(r["value"]) for r in rows(part) if r["split"] == "val" and r["step"] == "4"}
     assert logged.keys() == expected.keys()
     assert all(logged[k] == pytest.approx(expected[k], rel=1e-5, abs=1e-9) for k in expected)
-    train.fit(config("trainer.eval_every=2", "resume=true"), part)
+    loop.fit(config("trainer.eval_every=2", "resume=true"), part)
     assert [r for r in rows(part) if r["name"] != "train_seconds"] == \
         [r for r in rows(whole) if r["name"] != "train_seconds"]
     assert all(torch.equal(weights(part)[k], v) for k, v in weights(whole).items())
@@ -294,17 +295,17 @@ def test_validation_during_training_scores_that_step_and_survives_an_interruptio
 
 def test_resuming_a_finished_run_replaces_its_final_rows(tmp_path):
     run_dir = tmp_path / "run"
-    train.fit(config(), run_dir)
+    loop.fit(config(), run_dir)
     before = [r for r in rows(run_dir) if r["name"] != "train_seconds"]
     assert sum(r["split"] == "final" for r in before) > 0
-    train.fit(config("resume=true"), run_dir)
+    loop.fit(config("resume=true"), run_dir)
     assert [r for r in rows(run_dir) if r["name"] != "train_seconds"] == before
 
 
 def test_a_new_run_in_the_folder_of_another_is_refused(tmp_path):
-    train.fit(config("trainer.stop_after=2"), tmp_path / "run")
+    loop.fit(config("trainer.stop_after=2"), tmp_path / "run")
     with pytest.raises(InputError, match=r"last\.pt: this run directory already holds a run; resume=true continues"):
-        train.fit(config(), tmp_path / "run")
+        loop.fit(config(), tmp_path / "run")
 
 
 # --------------------------------------------------------------------------- early stopping, best weights
@@ -325,13 +326,13 @@ def test_early_stopping_keeps_the_best_weights_and_evaluates_them(tmp_path, monk
     resumed early-stopped run trains no further."""
     from tasks.head2neck import Task
 
-    train.fit(config("trainer.stop_after=2"), tmp_path / "two")
+    loop.fit(config("trainer.stop_after=2"), tmp_path / "two")
     at_two = weights(tmp_path / "two")
     monkeypatch.setattr(Task, "evaluate", distance_to(at_two))
     settings = ("trainer.eval_every=1", "trainer.early_stopping_patience=2", "trainer.restore_best=true",
                 "trainer.checkpoint_every=3")  # the stop (step 4) is saved although no checkpoint is due
     run_dir = tmp_path / "run"
-    final = train.fit(config(*settings), run_dir)
+    final = loop.fit(config(*settings), run_dir)
     assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["step"] == 4
     assert max(int(r["step"]) for r in rows(run_dir) if r["split"] != "final") == 4
     best = load_checkpoint(run_dir / "checkpoints" / "best.pt")
@@ -342,24 +343,24 @@ def test_early_stopping_keeps_the_best_weights_and_evaluates_them(tmp_path, monk
     load_model(run_dir / "checkpoints" / "best.pt", task="head2neck")  # loads like last.pt
 
     interrupted = tmp_path / "interrupted"
-    train.fit(config(*settings, "trainer.stop_after=3"), interrupted)
-    resumed = train.fit(config(*settings, "resume=true"), interrupted)
+    loop.fit(config(*settings, "trainer.stop_after=3"), interrupted)
+    resumed = loop.fit(config(*settings, "resume=true"), interrupted)
     assert {k: v for k, v in resumed.items() if k != "train_seconds"} == \
         {k: v for k, v in final.items() if k != "train_seconds"}
     assert all(torch.equal(weights(interrupted)[k], v) for k, v in weights(run_dir).items())
-    again = train.fit(config(*settings, "resume=true"), run_dir)
+    again = loop.fit(config(*settings, "resume=true"), run_dir)
     assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["step"] == 4 and again["val_loss"] == 0.0
     with pytest.raises(InputError, match=r"only resume, trainer\.stop_after.*trainer\.log_every, "
                                          r"trainer\.checkpoint_every"):
-        train.fit(config(*settings, "resume=true", "trainer.eval_every=2"), run_dir)  # it chose the weights
+        loop.fit(config(*settings, "resume=true", "trainer.eval_every=2"), run_dir)  # it chose the weights
 
 
 def test_without_restore_best_the_final_evaluation_scores_the_last_weights(tmp_path, monkeypatch):
     from tasks.head2neck import Task
 
-    train.fit(config("trainer.stop_after=2"), tmp_path / "two")
+    loop.fit(config("trainer.stop_after=2"), tmp_path / "two")
     monkeypatch.setattr(Task, "evaluate", distance_to(weights(tmp_path / "two")))
-    final = train.fit(config("trainer.eval_every=1"), tmp_path / "run")
+    final = loop.fit(config("trainer.eval_every=1"), tmp_path / "run")
     assert final["val_loss"] > 0 and final["best_step"] == 2.0  # trained to the end: no patience
     assert load_checkpoint(tmp_path / "run" / "checkpoints" / "best.pt")["step"] == 2
     # the last step is scored by the final evaluation alone
@@ -371,22 +372,22 @@ def test_the_final_evaluation_counts_for_the_best_weights(tmp_path, monkeypatch)
     best.pt holds the last weights (written at the end)."""
     from tasks.head2neck import Task
 
-    train.fit(config(), tmp_path / "whole")
+    loop.fit(config(), tmp_path / "whole")
     monkeypatch.setattr(Task, "evaluate", distance_to(weights(tmp_path / "whole")))
-    final = train.fit(config("trainer.eval_every=2"), tmp_path / "run")
+    final = loop.fit(config("trainer.eval_every=2"), tmp_path / "run")
     best = load_checkpoint(tmp_path / "run" / "checkpoints" / "best.pt")
     assert best["step"] == MAX_STEPS and best["val_loss"] == 0.0 and final["best_step"] == MAX_STEPS
     assert min(float(r["value"]) for r in rows(tmp_path / "run") if r["name"] == "val_loss" and r["split"] == "val") > 0
     # restore_best validates the last step too: the last weights are the best, and stay
-    final = train.fit(config("trainer.eval_every=2", "trainer.restore_best=true"), tmp_path / "restoring")
+    final = loop.fit(config("trainer.eval_every=2", "trainer.restore_best=true"), tmp_path / "restoring")
     assert final["best_step"] == MAX_STEPS and final["val_loss"] == 0.0
 
 
 def test_early_stopping_needs_a_val_loss_and_validation(tmp_path):
     with pytest.raises(InputError, match=r"need a val_loss from the task's evaluation, which returned joint_err_deg"):
-        train.fit(config("trainer.eval_every=2", "trainer.early_stopping_patience=2"), tmp_path / "a")
+        loop.fit(config("trainer.eval_every=2", "trainer.early_stopping_patience=2"), tmp_path / "a")
     with pytest.raises(InputError, match=r"trainer: early_stopping_patience and restore_best need validation during "
                                          r"training: eval_every is 0"):
-        train.fit(config("trainer.restore_best=true"), tmp_path / "b")
+        loop.fit(config("trainer.restore_best=true"), tmp_path / "b")
     with pytest.raises(InputError, match=r"trainer: early_stopping_patience is 0, expected at least 1"):
-        train.fit(config("trainer.eval_every=1", "trainer.early_stopping_patience=0"), tmp_path / "c")
+        loop.fit(config("trainer.eval_every=1", "trainer.early_stopping_patience=0"), tmp_path / "c")

@@ -6,7 +6,7 @@ checkpoints (``models.checkpoint``: ``task``, ``model_config``, ``model``; no op
 by ``train.py`` on the built-in procedural rig and synthetic data only: nothing in them is derived from
 the HACK release.  ``benchmarks/retrain_pretrained.py`` retrains them and compares with the manifest.
 
-Shipping a trained run: ``python -m models.pretrained run=runs/<task>/<time> name=<file stem>``.
+Shipping a trained run: ``python -m models.pretrained run=runs/<task>/<time> name=<file stem>`` (``.cli``).
 """
 from __future__ import annotations
 
@@ -14,10 +14,8 @@ import hashlib
 import json
 import os
 import subprocess
-from dataclasses import dataclass
 from pathlib import Path
 
-from base.cli import REQUIRED, register_config
 from base.errors import InputError
 from base.files import write_text
 from models.checkpoint import load_checkpoint, load_model, save_checkpoint
@@ -63,6 +61,24 @@ def pretrained_path(name: str) -> Path:
 def default_checkpoint(task: str) -> Path:
     """The shipped default model of ``task``."""
     return pretrained_path(DEFAULTS[task])
+
+
+def chosen_checkpoint(value: str | None, task: str, key: str, part: str,
+                      announce=print) -> tuple[str | Path | None, str | None]:
+    """The checkpoint a ``key=`` setting names for ``part`` (e.g. the larynx), and its provenance label:
+    ``default`` is the shipped model of ``task`` (None, announced, when none ships), ``none`` (or null, or
+    empty) is None (the part rests), anything else is the path given."""
+    choice = "none" if value is None or str(value).lower() in ("none", "null", "") else str(value)
+    if choice == "none":
+        return None, None
+    if choice != "default":
+        return choice, choice
+    if DEFAULTS[task] not in read_manifest():
+        announce(f"{part}: no shipped model in models/pretrained; the {part} rests (give {key}=<file>)")
+        return None, None
+    path = default_checkpoint(task)
+    announce(f"{part}: the shipped model {path.name} ({key}=<file> for another, {key}=none for none)")
+    return path, f"shipped:{path.name}"
 
 
 def load_default(task: str):
@@ -123,22 +139,3 @@ def ship_file(path: str | os.PathLike, name: str, task: str, command: str, evalu
                       "trained_on": "synthetic data from the project's own generators (no third-party data)"}
     write_text(MANIFEST, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
     return manifest[name]
-
-
-@dataclass
-class ShipCli:
-    """``python -m models.pretrained``: ship a finished train.py run."""
-
-    run: str = REQUIRED       # the run directory (runs/<task>/<time>)
-    name: str = REQUIRED      # file stem under models/pretrained/
-    command: str = REQUIRED   # the command that produced the run, for the manifest
-    checkpoint: str | None = None  # null: the weights eval.json scored (best.pt with trainer.restore_best)
-
-
-register_config("pretrained_schema", ShipCli)
-
-
-def run(cfg) -> None:
-    entry = ship(cfg.run, cfg.name, cfg.command, cfg.checkpoint)
-    print(f"{PRETRAINED / entry['file']}: {entry['bytes'] / 1e6:.2f} MB, sha256 {entry['sha256'][:12]}..., "
-          f"task {entry['task']}")

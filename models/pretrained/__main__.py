@@ -3,7 +3,7 @@ import torch
 
 from base.cli import run_cli
 from models.pretrained import __doc__ as doc
-from models.pretrained import run
+from models.pretrained.cli import run
 
 if __name__ == "__main__":
     torch.set_num_threads(1)

@@ -1,0 +1,92 @@
+"""One capture to animation parameters: read the take, run the larynx and neck models, insert swallows."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from base.cli import as_list
+from base.errors import InputError
+from data.demo_take import DEMO_SOURCE, SWALLOW_ONSET, demo_take
+from data.expressions import EXPRESSION_NAMES, ExpressionTrack, arkit_name, read_expressions
+from data.params import AnimationParams, rig_checksum
+from models.head2neck import predict_theta
+from models.larynx import predict_tau
+from models.pretrained import pretrained_path
+from motion.head2neck import head_rotations_from_ypr, recentered
+from motion.pipeline.config import InferConfig
+from motion.pipeline.models import Models
+from motion.swallow import insert_swallows, read_template
+
+# Expressions no ARKit capture has (ICT's cheekRaiser_L/R): their absence is a note, not an error.
+NEVER_IN_ARKIT = tuple(name for name in EXPRESSION_NAMES if arkit_name(name) is None)
+
+
+def read_take(cfg: InferConfig, path: str | None) -> ExpressionTrack:
+    """The recording at ``path`` (or the demo take), refusing one that lacks ARKit expression columns
+    unless ``allow_missing``."""
+    if path is None:
+        return demo_take()
+    track = read_expressions(path, fps=cfg.fps, timecode_fps=cfg.timecode_fps)
+    lacking = [name for name in track.missing if name not in NEVER_IN_ARKIT]
+    if lacking and not cfg.allow_missing:
+        columns = sorted({arkit_name(name) or name for name in lacking})
+        raise InputError(f"{path}: no column for {len(lacking)} of the {len(EXPRESSION_NAMES)} expressions "
+                         f"({', '.join(columns[:8])}{', ...' if len(columns) > 8 else ''}); expected a full "
+                         f"ARKit / HACK capture, or allow_missing=true to run with them at 0")
+    return track
+
+
+def head_theta(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=print) -> np.ndarray:
+    """Bone-frame theta [T,J,3] from the take's head rotation (zeros without a neck model or rotation)."""
+    theta = np.zeros((len(track), models.rig.num_joints, 3), dtype=np.float32)
+    if models.neck is None:
+        return theta
+    if track.head_ypr is None:
+        announce(f"{track.source}: no head rotation recorded (HeadYaw/HeadPitch/HeadRoll absent or zero); "
+                 f"the neck rests")
+        return theta
+    signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
+    head = head_rotations_from_ypr(track.head_ypr, cfg.head_units, signs,
+                                   f"{track.source} (HeadYaw, HeadPitch, HeadRoll)")
+    return predict_theta(models.neck, models.rig, recentered(head) if cfg.recenter else head).numpy()
+
+
+def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=print) -> tuple[AnimationParams, dict]:
+    """The per-frame rig inputs for one take, and the seconds each stage took."""
+    seconds = {}
+    started = time.perf_counter()
+    fps = models.larynx.fps if models.larynx is not None else float(cfg.out_fps or track.fps)
+    uniform = track.resampled(fps)
+    seconds["resample"] = time.perf_counter() - started
+    started = time.perf_counter()
+    if models.larynx is not None:
+        tau = predict_tau(models.larynx, uniform.psi, cfg.subject, float(cfg.eta))
+    else:
+        tau = np.zeros(len(uniform))
+    seconds["larynx"] = time.perf_counter() - started
+    onsets = [float(t) for t in as_list(cfg.swallow_at)]
+    if track.source == DEMO_SOURCE and not onsets:
+        onsets = [SWALLOW_ONSET]
+    if onsets:
+        path = pretrained_path("swallow_template") if cfg.swallow_template == "default" else cfg.swallow_template
+        template = read_template(path)
+        playback = cfg.swallow_playback
+        try:
+            tau = insert_swallows(tau, uniform.time, template, onsets, as_list(cfg.swallow_duration_scale),
+                                  as_list(cfg.swallow_amplitude_scale), playback)
+        except ValueError as e:  # an onset outside the take, scales that do not match the onsets
+            raise InputError(f"swallow_at={onsets} in {track.source}: {e}") from None
+    started = time.perf_counter()
+    theta = head_theta(cfg, models, uniform, announce)
+    with torch.no_grad():
+        head = models.rig.head_rotation(torch.as_tensor(theta)).numpy()
+    seconds["head2neck"] = time.perf_counter() - started
+    params = AnimationParams(
+        time=uniform.time - uniform.time[0], fps=fps, psi=uniform.psi, tau=tau,
+        eta=np.full(len(uniform), float(cfg.eta)), theta=theta, head_rotation=head,
+        joint_names=models.rig.joint_names, expression_names=models.rig.expression_names,
+        rig=models.rig_name, rig_checksum=rig_checksum(models.rig.rig),
+        producers={**models.producers, "swallows": onsets, "source": str(track.source)})
+    return params, seconds

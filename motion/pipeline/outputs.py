@@ -1,0 +1,105 @@
+"""The files of one take: params.npz / params.csv, the plot, per-frame meshes, anim.glb and preview.mp4."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from base.files import write_csv
+from base.plots import figure, save_figure
+from base.progress import progress_bar
+from data.mesh_io import write_obj, write_ply
+from data.params import AnimationParams, load_params, save_params
+from models.rig import HeadNeckModel
+from motion.pipeline.config import InferConfig
+from motion.pipeline.models import Models
+from scene.gltf import export_glb
+from scene.preview import Panel, anatomical_degrees, write_preview
+
+
+def write_params_csv(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
+    """One row a frame: time, tau, eta, the 55 weights, and each joint's bone-frame axis-angle (rad)."""
+    columns = {"frame": np.arange(len(params)), "time": params.time, "tau": params.tau, "eta": params.eta}
+    columns.update({name: params.psi[:, k] for k, name in enumerate(params.expression_names)})
+    for j, joint in enumerate(params.joint_names):
+        for a, axis in enumerate("xyz"):
+            columns[f"theta_{joint}_{axis}"] = params.theta[:, j, a]
+    write_csv(path, columns, float_format="%.7g")
+
+
+def plot_take(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
+    """tau and eta over time with the swallow onsets, and the joints' anatomical angles over time."""
+    fig, axes = figure(nrows=4, figsize=(10, 9), sharex=True)
+    axes[0].plot(params.time, params.tau, color="tab:blue", label="tau (UV units, + = up)")
+    axes[0].set_ylabel("tau")
+    twin = axes[0].twinx()
+    twin.plot(params.time, params.eta, color="tab:gray", linestyle="--", label="eta")
+    twin.set_ylabel("eta")
+    for onset in params.producers.get("swallows", []):
+        axes[0].axvline(onset, color="tab:red", alpha=0.5)
+    axes[0].set_title(f"{params.producers.get('source', '')}: larynx (red: swallows)")
+    degrees = anatomical_degrees(rig, params.theta)
+    for a, label in enumerate(("flexion (+) / extension", "axial rotation (+ = left)", "lateral bend (+ = right)")):
+        for j, joint in enumerate(params.joint_names):
+            axes[a + 1].plot(params.time, degrees[:, j, a], label=joint)
+        axes[a + 1].set_ylabel(f"{label}\n(deg)")
+    axes[1].legend(ncol=8, fontsize=7, loc="upper right")
+    axes[-1].set_xlabel("time (s)")
+    save_figure(fig, path)
+
+
+@torch.no_grad()
+def write_meshes(folder: Path, rig: HeadNeckModel, params: AnimationParams, mesh_format: str = "ply",
+                 batch: int = 64) -> int:
+    """Pose the rig for every frame and write ``frame_00000.<mesh_format>`` ... into ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    faces = rig.faces.numpy()
+    count = len(params)
+    with progress_bar(total=count, desc="meshes", unit="frame", disable=count < 64) as progress:
+        for start in range(0, count, batch):
+            stop = min(start + batch, count)
+            vertices = rig(torch.as_tensor(params.theta[start:stop]), torch.as_tensor(params.psi[start:stop]),
+                           torch.as_tensor(params.tau[start:stop]), torch.as_tensor(params.eta[start:stop])).numpy()
+            for offset, frame in enumerate(vertices):
+                path = folder / f"frame_{start + offset:05d}.{mesh_format}"
+                if mesh_format == "ply":
+                    write_ply(path, frame, faces)
+                else:
+                    write_obj(path, frame, faces, rig.rig.uv_coords, rig.rig.faces_uv)
+            progress.update(stop - start)
+    return count
+
+
+def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, folder: Path, announce=print) -> dict:
+    """Everything for one take into ``folder`` (``params`` drive the character when there is one); the
+    seconds each output took."""
+    rig = models.rig if models.character is None else models.character
+    seconds = {}
+    started = time.perf_counter()
+    save_params(folder / "params.npz", params)
+    write_params_csv(folder / "params.csv", params, rig)
+    seconds["write"] = time.perf_counter() - started
+    if cfg.plot:
+        started = time.perf_counter()
+        plot_take(folder / "plot.png", params, rig)
+        seconds["plot"] = time.perf_counter() - started
+    if cfg.meshes:
+        started = time.perf_counter()
+        write_meshes(folder / "meshes", rig, params, cfg.mesh_format)
+        seconds["meshes"] = time.perf_counter() - started
+    if "glb" in cfg.export:
+        started = time.perf_counter()
+        report = export_glb(params, rig, folder / "anim.glb", check=False,
+                            source=str(params.producers["source"]))
+        announce(report.summary())
+        seconds["glb"] = time.perf_counter() - started
+    if "mp4" in cfg.export:
+        started = time.perf_counter()
+        panels = [Panel.create(rig, params)]
+        if models.character is not None:  # side by side: the capture's own rig, then the character
+            panels.insert(0, Panel.create(models.rig, load_params(folder / "source_params.npz")))
+        write_preview(folder / "preview.mp4", panels)
+        seconds["mp4"] = time.perf_counter() - started
+    return seconds
