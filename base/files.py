@@ -1,4 +1,5 @@
-"""Writing files: every output goes through :func:`atomic_path`, so a crash never leaves a half-written file.
+"""Writing files: every output goes through :func:`atomic_path` (a folder through :func:`atomic_folder`), so a
+crash never leaves a half-written file or folder.
 
 The data is written to a temporary file beside the target and renamed over it.  Also the one ``.npy``
 reader with rank, dtype and finiteness checks.
@@ -9,6 +10,7 @@ import contextlib
 import csv
 import io
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -111,3 +113,29 @@ def load_npy(path: str | os.PathLike, ndim: int | tuple[int, ...], what: str) ->
         first = np.argwhere(bad)[0]
         raise InputError(f"{path}: non-finite value at index {tuple(first.tolist())}; expected {what}")
     return array
+
+
+def require_new_folder(out_dir: Path) -> None:
+    """InputError unless ``out_dir`` is absent or an empty folder."""
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise InputError(f"out_dir={out_dir}: already exists and is not an empty folder; give a new one")
+
+
+@contextlib.contextmanager
+def atomic_folder(out_dir: Path) -> Iterator[Path]:
+    """A staging folder beside ``out_dir`` (absent or empty), renamed to it with a normal folder's mode when
+    the block succeeds and removed otherwise: :func:`atomic_path` for a folder."""
+    require_new_folder(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
+    try:
+        yield staging
+        if out_dir.is_dir():
+            out_dir.rmdir()  # empty (checked above)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(staging, 0o777 & ~umask)  # mkdtemp makes 0700
+        os.replace(staging, out_dir)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)

@@ -10,11 +10,11 @@ import torch
 from omegaconf import OmegaConf
 
 from base.errors import InputError
-from base.files import write_csv
+from base.files import require_new_folder, write_csv
 from base.progress import progress_bar
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models, load_models
-from motion.pipeline.take import require_new_folder, run_take
+from motion.pipeline.take import run_take
 from motion.swallow import PlaybackConfig
 
 TAKE_SUFFIXES = (".csv", ".npy")
