@@ -78,12 +78,11 @@ def best_over_threads(run, threads: int) -> tuple[float, int]:
 
 def recompute_cost(model, psi: torch.Tensor, prefix: int, repeats: int = 5) -> float:
     """Seconds for one FaceFormer-style frame: the model rerun on the whole prefix (median of ``repeats``)."""
-    previous = torch.zeros(1, prefix)
     times = []
     with torch.no_grad():
         for _ in range(repeats):
             start = time.perf_counter()
-            model(psi[None, :prefix], previous)
+            model(psi[None, :prefix])
             times.append(time.perf_counter() - start)
     return float(np.median(times))
 
@@ -104,7 +103,7 @@ def main() -> None:
     model = load_model(args.checkpoint, "larynx_transformer")[0] if args.checkpoint else default_model()
     cfg = model.config
     print(f"model: d_model {cfg['d_model']}, {cfg['n_layers']} layers, {cfg['n_heads']} heads, window "
-          f"{cfg['window']}, cross window {cfg['cross_window']}, expression dilations {cfg['expression_dilations']}; "
+          f"{cfg['window']}, expression dilations {cfg['expression_dilations']}; "
           f"torch threads {args.threads}; load average {os.getloadavg()[0]:.2f}")
     psi = torch.rand(20_000, 55, generator=torch.Generator().manual_seed(0))
 

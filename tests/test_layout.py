@@ -40,7 +40,8 @@ def test_schema_names_are_unique_and_registered_outside_the_models():
     found = registrations()
     assert len(found) >= 15  # every tool, the train config and its groups
     names = [name for _, name, _ in found]
-    assert sorted(set(names)) == sorted(names), f"schema names used twice: {sorted(n for n in set(names) if names.count(n) > 1)}"
+    twice = sorted(n for n in set(names) if names.count(n) > 1)
+    assert not twice, f"schema names used twice: {twice}"
     in_models = [str(p.relative_to(REPO)) for p, _, _ in found if p.relative_to(REPO).parts[0] == "models"
                  and p.name != "cli.py"]
     assert not in_models, f"model modules register hydra schemas: {in_models}"

@@ -62,7 +62,7 @@ def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=p
     seconds["resample"] = time.perf_counter() - started
     started = time.perf_counter()
     if models.larynx is not None:
-        tau = predict_tau(models.larynx, uniform.psi, cfg.subject, float(cfg.eta))
+        tau = predict_tau(models.larynx, uniform.psi, cfg.subject)
     else:
         tau = np.zeros(len(uniform))
     seconds["larynx"] = time.perf_counter() - started

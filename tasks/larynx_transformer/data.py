@@ -1,0 +1,94 @@
+"""The sequences of ``task=larynx_transformer``: training and validation sets of each data kind, and the crops.
+
+- ``data=synthetic`` (:class:`SyntheticData`): ``data.synthetic_larynx`` sequences.  Validation is on new
+  recordings of the training subjects (with their style) and on held-out subjects drawn from a *shifted*
+  generator (``data.heldout_shift``);
+- ``data=pairs`` (:class:`PairsData`): a folder of pair files, split into training and validation by take.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+from base.cli import to_dataclass
+from base.errors import InputError
+from data.pairs import LarynxSequence, load_pairs, split_by_take
+from data.synthetic_larynx import (
+    SWALLOW_CUES,
+    TRAINING_RANGES,
+    GeneratorRanges,
+    heldout_ranges,
+    make_dataset,
+    make_sequence,
+    split_subjects,
+)
+
+from .config import DATA_KINDS, SyntheticData
+
+
+def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
+    """(training, validation) sequences for ``cfg.data``, at ``data.fps``."""
+    kind = data.kind if hasattr(data, "kind") else data["kind"]
+    if kind not in DATA_KINDS:
+        raise InputError(f"larynx_transformer: data.kind '{kind}' not supported ({' or '.join(DATA_KINDS)})")
+    data = data if isinstance(data, DATA_KINDS[kind]) else to_dataclass(data, DATA_KINDS[kind], where="data")
+    if kind == "synthetic":
+        train_ids, heldout_ids = split_subjects(data.train_subjects, data.heldout_subjects)
+        options = synthetic_options(data)
+        train = synthetic_training_sequences(data, data.fps)
+        frames = int(round(data.seconds * data.fps))
+        new_takes = [make_sequence(subject, data.sequences_per_subject + i, frames, data.fps, data.seed, **options)
+                     for subject in train_ids for i in range(data.new_takes_per_subject)]
+        new_people = make_dataset(heldout_ids, data.heldout_sequences_per_subject, data.seconds, data.fps, data.seed,
+                                  **{**options, "ranges": with_cues(heldout_ranges(data.heldout_shift), data)})
+        return train, new_takes + new_people
+    pairs = load_pairs(data.path, data.fps)
+    return split_by_take(pairs, float(data.val_fraction), int(data.split_seed), f"take in {data.path}")
+
+
+def with_cues(ranges: GeneratorRanges, data: SyntheticData) -> GeneratorRanges:
+    """``ranges`` whose people swallow at the kinds of ``data.swallow_cues``; InputError naming an unknown kind."""
+    cues = tuple(str(c) for c in data.swallow_cues)
+    unknown = [c for c in cues if c not in SWALLOW_CUES]
+    if unknown or not cues:
+        raise InputError(f"data.swallow_cues: {', '.join(unknown) or 'empty'}; expected some of "
+                         f"{', '.join(SWALLOW_CUES)}")
+    return dataclasses.replace(ranges, cues=cues)
+
+
+def synthetic_options(data: SyntheticData) -> dict:
+    """The generator options of ``data`` (:func:`data.synthetic_larynx.make_sequence`'s keywords; the training
+    people's ranges)."""
+    return {"tau_noise": data.tau_noise, "swallows_per_minute": data.swallows_per_minute,
+            "blinks_per_minute": data.blinks_per_minute, "expression_noise": data.expression_noise,
+            "repeat_seals": data.repeat_seals, "ranges": with_cues(TRAINING_RANGES, data)}
+
+
+def synthetic_training_sequences(data: SyntheticData, fps: float) -> list[LarynxSequence]:
+    """The training people's sequences of ``data`` (``data=synthetic``), generated at ``fps``."""
+    train_ids, _ = split_subjects(data.train_subjects, data.heldout_subjects)
+    return make_dataset(train_ids, data.sequences_per_subject, data.seconds, fps, data.seed, **synthetic_options(data))
+
+
+def crop_for(train: list[LarynxSequence], crop: int, window: int) -> int:
+    """The training crop: ``task.crop`` frames, or the longest training sequence when all are shorter
+    (printed); InputError when even that does not exceed ``model.window``."""
+    longest = max(len(s) for s in train)
+    if longest <= window:
+        raise InputError(f"no training sequence is longer than model.window={window} frames (longest: {longest}); "
+                         f"training needs crops of full attention windows: lower model.window")
+    if longest < crop:
+        print(f"larynx_transformer: every training sequence is shorter than task.crop={crop} frames: crops of "
+              f"{longest} frames (the longest)")
+    return min(crop, longest)
+
+
+def usable_sequences(train: list[LarynxSequence], crop: int) -> list[LarynxSequence]:
+    """The training sequences of at least ``crop`` frames; the shorter ones are reported (printed) and
+    dropped (:func:`crop_for` leaves at least one)."""
+    usable = [s for s in train if len(s) >= crop]
+    short = [s for s in train if len(s) < crop]
+    if short:
+        print(f"larynx_transformer: {len(short)} of {len(train)} training sequences are shorter than the crop of "
+              f"{crop} frames and are not used (lower task.crop to use them): "
+              + ", ".join(f"{s.name} ({len(s)} frames)" for s in short))
+    return usable
