@@ -87,11 +87,14 @@ def load_default(task: str):
 
 
 def git_commit() -> str:
+    """HEAD's commit, "+uncommitted changes" when a tracked file other than the shipped files and the manifest
+    differs from it (those change as each model is shipped, so they do not count)."""
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
                              cwd=PRETRAINED.parent.parent)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, cwd=PRETRAINED.parent.parent).stdout.strip()
+        shipped = [f":(exclude)models/pretrained/{p}" for p in ("*.pt", "*.csv", "manifest.json")]
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".", *shipped],
+                               capture_output=True, text=True, cwd=PRETRAINED.parent.parent).stdout.strip()
         return out.stdout.strip() + ("+uncommitted changes" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
