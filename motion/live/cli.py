@@ -1,0 +1,101 @@
+"""Drive the neck and larynx from the Live Link Face stream: ``python -m motion.live``.
+
+    python -m motion.live [host=0.0.0.0] [port=11111] [out_dir=DIR] [duration=SECONDS] \\
+        [checkpoint=default|none|path] [head2neck=default|none|path] [rig=hack_rig.npz]
+    python -m motion.live.send take=take.csv [host=127.0.0.1] [port=11111] [speed=1.0]   # no phone at hand
+
+Receives Live Link Face "ARKit" mode datagrams (packet version 6, ``motion.live.packet``) on UDP ``port``;
+in the app: Settings -> Live Link -> add a target with this machine's IP address and port 11111.  Every
+phone (device id + subject) gets its own stream: its frames are resampled causally to the larynx model's
+rate (the shipped model: 30 fps; without one, the stream's) as ``infer.py`` resamples, and each output
+frame runs the larynx model's step (tau) and head2neck (theta) as it completes.  Late or out-of-order
+frames are dropped, frame-number gaps interpolated over, weights outside ``data.expressions.WEIGHT_RANGE``
+clamped and counted; datagrams too short, of another version (MetaHuman Animator mode, old apps), with a
+wrong count, bad names, NaN/Inf or absurd values are counted by reason and skipped.
+
+Stops on Ctrl-C / SIGTERM or after ``duration`` seconds, then writes ``out_dir`` (default
+``runs/live/<time>/``) whole: ``<subject>/params.npz`` (``data.params``, as infer.py writes it),
+``<subject>/capture.csv`` (the frames as a Live Link Face CSV: ``python infer.py expressions=...`` on it
+gives the same params), ``summary.json`` (``rejected`` by reason; per subject ``frames``,
+``missing_frames``, ``latency_ms`` p50/p99/max from receipt to params).  A status line every
+``status_seconds``.  Head angles: ``head_units``, ``*_sign``, ``recenter`` as in ``motion/head2neck/cli.py``.
+"""
+from __future__ import annotations
+
+import json
+import signal
+from datetime import datetime
+from pathlib import Path
+
+from base.cli import to_dataclass
+from base.errors import InputError
+from base.files import atomic_folder, require_new_folder
+from motion.live.config import LiveConfig
+from motion.live.outputs import write_session
+from motion.live.receiver import LiveReceiver
+from motion.live.stream import StreamOptions
+from motion.pipeline.config import InferConfig
+from motion.pipeline.models import Models, load_models
+
+
+def default_out_dir() -> Path:
+    return Path("runs") / "live" / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+
+
+def live_models(config: LiveConfig, announce=print) -> Models:
+    """The larynx and neck models and the rig, chosen as infer.py chooses them (``motion.pipeline.models``)."""
+    models = load_models(InferConfig(checkpoint=config.checkpoint, head2neck=config.head2neck, rig=config.rig),
+                         announce)
+    models.producers["tool"] = "motion.live"
+    return models
+
+
+def stream_options(config: LiveConfig) -> StreamOptions:
+    return StreamOptions(config.head_units, config.signs, config.recenter, config.eta, config.max_gap_seconds)
+
+
+def finish(receiver: LiveReceiver, out_dir: Path, eta: float) -> dict:
+    """Write the session into ``out_dir``, whole or not at all; the summary."""
+    with atomic_folder(out_dir) as staging:
+        return write_session(staging, list(receiver.streams.values()), dict(receiver.rejected), eta,
+                             {"datagrams": receiver.received})
+
+
+def run(cfg) -> dict:
+    config: LiveConfig = to_dataclass(cfg, LiveConfig, where="configs/live.yaml")
+    out_dir = Path(config.out_dir) if config.out_dir else default_out_dir()
+    require_new_folder(out_dir)  # refuse now, not after the session
+    models = live_models(config)
+    try:
+        receiver = LiveReceiver(models, stream_options(config), config.host, config.port, config.max_phones,
+                                config.absurd_weight)
+    except OSError as e:
+        raise InputError(f"host={config.host} port={config.port}: cannot listen ({e.strerror or e})") from None
+    stop = {"signal": None}
+
+    def on_signal(number, _frame):
+        stop["signal"] = signal.Signals(number).name
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    host, port = receiver.address
+    until = f"for {config.duration:g} s" if config.duration else "until Ctrl-C"
+    print(f"live: listening on {host}:{port} (UDP, Live Link Face v6) {until}; writing {out_dir} at the end")
+    failure = None
+    try:
+        receiver.run(config.duration, lambda: stop["signal"] is not None, config.tick_ms / 1000.0,
+                     config.status_seconds)
+    except Exception as e:  # a bug must not lose the session: write what was received, then fail
+        failure = e
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+        receiver.close()
+    print(f"live: stopped ({stop['signal'] or ('error' if failure else 'duration')}); {receiver.received} "
+          f"datagrams, {receiver.produced} frames out")
+    summary = finish(receiver, out_dir, config.eta)
+    if failure is not None:
+        raise failure
+    print(json.dumps({"out": str(out_dir), "rejected": summary["rejected"],
+                      "subjects": {k: {"frames": v["frames"], "missing_frames": v["missing_frames"],
+                                       "latency_ms": v["latency_ms"]} for k, v in summary["subjects"].items()}}))
+    return summary

@@ -1,0 +1,54 @@
+"""The settings of ``python -m motion.live`` (``configs/live.yaml``): the :class:`LiveConfig` schema."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from base.cli import register_config
+from motion.head2neck import UNITS
+
+
+@dataclass
+class LiveConfig:
+    """``python -m motion.live``: receive Live Link Face v6 datagrams and drive the neck and larynx."""
+
+    host: str = "0.0.0.0"              # address to listen on (0.0.0.0: every interface)
+    port: int = 11111                  # Live Link Face's default target port
+    out_dir: str | None = None         # null: runs/live/<time>/; written whole when the receiver stops
+    duration: float | None = None      # seconds; null = until Ctrl-C / SIGTERM
+    checkpoint: str = "default"        # larynx model: default (shipped) | none (the larynx rests) | a checkpoint
+    head2neck: str = "default"         # default (shipped) | none (the neck rests) | a checkpoint
+    rig: str | None = None             # rig file from python -m data.assets; null = the built-in rig
+    eta: float = 1.0                   # larynx size
+    # Head angles as streamed (conventions: motion/head2neck/cli.py).  rad: what our sender sends (the CSV's
+    # values, radians); a phone whose stream is Unreal's degrees/180 needs head_units=halfturn.
+    head_units: str = "rad"            # rad | deg | halfturn
+    yaw_sign: float = 1.0
+    pitch_sign: float = 1.0
+    roll_sign: float = 1.0
+    recenter: bool = False             # the phone's first frame is the rest pose
+    max_phones: int = 8                # streams kept at once (device id + subject); more are refused
+    max_gap_seconds: float = 10.0      # a frame-number jump longer than this is refused ("jump"), not filled
+    absurd_weight: float = 10.0        # a weight beyond +-this refuses the datagram ("absurd")
+    status_seconds: float = 5.0        # a status line this often (0: none)
+    tick_ms: float = 2.0               # the socket is waited on at most this long between drains
+    threads: int = 1                   # torch threads (one frame at a time runs on one)
+
+    def __post_init__(self) -> None:
+        if self.head_units not in UNITS:
+            raise ValueError(f"head_units={self.head_units}: expected one of {', '.join(UNITS)}")
+        for name in ("yaw_sign", "pitch_sign", "roll_sign"):
+            if float(getattr(self, name)) not in (1.0, -1.0):
+                raise ValueError(f"{name}={getattr(self, name)}: expected +1 or -1")
+        if not 0 < self.port < 65536:
+            raise ValueError(f"port={self.port}: expected 1..65535")
+        if self.duration is not None and self.duration <= 0:
+            raise ValueError(f"duration={self.duration}: expected seconds > 0 (or null: until stopped)")
+        if self.max_phones < 1 or self.max_gap_seconds <= 0 or self.absurd_weight <= 0 or self.tick_ms <= 0:
+            raise ValueError("max_phones, max_gap_seconds, absurd_weight and tick_ms must be positive")
+
+    @property
+    def signs(self) -> tuple[float, float, float]:
+        return float(self.yaw_sign), float(self.pitch_sign), float(self.roll_sign)
+
+
+register_config("live_schema", LiveConfig)
