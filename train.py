@@ -22,15 +22,7 @@ from omegaconf import DictConfig
 
 from base.cli import compose_config, to_dataclass
 from base.errors import InputError
-from tasks.distributed import (  # noqa: F401  (re-exported: train.<name> for tests and benchmarks)
-    Ranks,
-    TaskParallel,
-    launched_ranks,
-    resolve_device,
-    split_batch,
-    to_device,
-)
-from tasks.loop import fit, lr_factor, rank_seed, step_seeds  # noqa: F401
+from tasks.loop import fit
 from tasks.run_folder import discard_unstarted_run
 
 

@@ -60,7 +60,6 @@ from torch import nn
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import tasks  # noqa: E402,F401  (registers the config schemas)
-import train  # noqa: E402
 from base.cli import compose_config  # noqa: E402
 from base.errors import InputError  # noqa: E402
 from base.plots import figure, save_figure  # noqa: E402
@@ -71,6 +70,7 @@ from data.synthetic_tau import SwallowShape, swallow_profile  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
 from models.larynx import predict_tau  # noqa: E402
 from tasks.larynx_transformer import Task, fit_ridge, rmse, window_features  # noqa: E402
+from tasks.loop import fit, lr_factor, step_seeds  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -412,7 +412,7 @@ def train_default(folder: Path, run_dir: Path, seed: int, extra: list[str] = ())
     cfg = compose_config("train", overrides)
     task = Task(cfg)
     shutil.rmtree(run_dir, ignore_errors=True)
-    evaluation = train.fit(cfg, run_dir)
+    evaluation = fit(cfg, run_dir)
     best = run_dir / "checkpoints" / "best.pt"
     return (best if best.is_file() else run_dir / "checkpoints" / "last.pt"), evaluation, task
 
@@ -459,11 +459,11 @@ def train_gru(task: Task, cfg, hidden: int, seed: int, log) -> GRUBaseline:
                                   weight_decay=cfg.optim.weight_decay)
     steps = task.total_steps
     schedule = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda s: train.lr_factor(s, cfg.optim.warmup_steps, steps, cfg.optim.min_lr_factor))
+        optimizer, lambda s: lr_factor(s, cfg.optim.warmup_steps, steps, cfg.optim.min_lr_factor))
     index = {name: i + 1 for i, name in enumerate(task.subjects)}
     best, best_state, since = math.inf, None, 0
     for step in range(steps):
-        _, batch_seed = train.step_seeds(seed, step)
+        _, batch_seed = step_seeds(seed, step)
         batch = task.batch(step, torch.Generator().manual_seed(batch_seed))
         model.train()
         error = (model(batch["psi"], batch["subject"]) - batch["tau"]) / model.tau_scale

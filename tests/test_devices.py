@@ -13,14 +13,15 @@ import torch
 from test_train import config as head2neck_config
 
 import tasks  # noqa: F401  (registers the config schemas)
-import train
 from base.cli import compose_config
 from base.rotations import axis_angle_to_matrix, relative_angle
 from data.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
 from models.head2neck import chain_head_rotation, correct_to_head, head_error_deg, split_head_rotation
 from models.larynx import LarynxDataFields, LarynxTransformer, LarynxTransformerConfig
+from tasks.distributed import to_device
 from tasks.head2neck import Task as Head2NeckTask
 from tasks.larynx_transformer import Task as LarynxTask
+from tasks.loop import fit
 
 META = torch.device("meta")
 LARYNX = ["task=larynx_transformer", "model.d_model=16", "model.n_heads=2", "model.d_ff=16", "model.window=8",
@@ -45,7 +46,7 @@ def test_the_transformer_runs_where_its_weights_are(n_layers):
 def test_the_larynx_task_moves_its_model_and_decodes_there():
     task = LarynxTask(compose_config("train", LARYNX))
     assert task.to(META) is task and task.device == META
-    batch = train.to_device(task.batch(0, torch.Generator().manual_seed(0)), META)
+    batch = to_device(task.batch(0, torch.Generator().manual_seed(0)), META)
     prediction = task.model(batch["psi"], batch["subject"])
     assert prediction.shape == batch["tau"].shape and prediction.device == META
 
@@ -54,7 +55,7 @@ def test_the_head2neck_task_moves_model_rig_and_validation_frames():
     """The loss's and the evaluation's tensor code on the moved task (the early-exit test of the correction
     reads a number, which meta tensors do not have: iterations=0 here)."""
     task = Head2NeckTask(head2neck_config())
-    batch = train.to_device(task.batch(0, torch.Generator().manual_seed(0)), META)
+    batch = to_device(task.batch(0, torch.Generator().manual_seed(0)), META)
     assert task.to(META) is task
     theta = task.model(batch["head"], task.rest)
     assert theta.device == META and chain_head_rotation(theta, task.rig).shape == batch["head"].shape
@@ -78,7 +79,7 @@ def test_training_on_cuda_gives_the_cpu_figures(tmp_path, task):
             return head2neck_config(f"trainer.device={device}")
         return compose_config("train", [*LARYNX, "trainer.max_steps=20", "trainer.eval_every=10",
                                         "trainer.progress=false", f"trainer.device={device}"])
-    cpu = train.fit(config("cpu"), tmp_path / "cpu")
-    cuda = train.fit(config("cuda"), tmp_path / "cuda")
+    cpu = fit(config("cpu"), tmp_path / "cpu")
+    cuda = fit(config("cuda"), tmp_path / "cuda")
     for key, value in cpu.items():
         assert cuda[key] == pytest.approx(value, rel=1e-3, abs=1e-5), key

@@ -535,10 +535,10 @@ def tiny_config(run_overrides=(), data=None):
 
 
 def fit(cfg, run_dir: Path):
-    import train
+    from tasks import loop
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    return train.fit(cfg, run_dir)
+    return loop.fit(cfg, run_dir)
 
 
 def test_tiny_training_learns_the_generator(tmp_path, capsys):
