@@ -8,7 +8,7 @@ from base.cli import register_config
 from motion.swallow import PlaybackConfig
 
 MESH_FORMATS = ("ply", "obj")
-EXPORTS = ("glb", "mp4")
+EXPORTS = ("glb", "mp4", "html")
 
 
 @dataclass
@@ -43,7 +43,7 @@ class InferConfig:
     character: str = "human"           # human | giraffe (built from the rig) | a character file (.npz)
     meshes: bool = False               # one mesh per frame in meshes/
     mesh_format: str = "ply"           # ply | obj
-    export: list[str] = field(default_factory=list)  # glb, mp4
+    export: list[str] = field(default_factory=list)  # glb, mp4, html (viewer.html)
     plot: bool = True
     workers: int = 1                   # takes of a folder run in this many processes
     threads: int = 1                   # torch threads per process (per-frame decoding runs on one)

@@ -1,4 +1,5 @@
-"""The files of one take: params.npz / params.csv, the plot, per-frame meshes, anim.glb and preview.mp4."""
+"""The files of one take: params.npz / params.csv, the plot, per-frame meshes, anim.glb, preview.mp4 and
+viewer.html."""
 from __future__ import annotations
 
 import time
@@ -17,6 +18,7 @@ from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models
 from scene.gltf import export_glb
 from scene.preview import Panel, anatomical_degrees, write_preview
+from scene.viewer import build_viewer
 
 
 def write_params_csv(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
@@ -102,4 +104,10 @@ def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, fol
             panels.insert(0, Panel.create(models.rig, load_params(folder / "source_params.npz")))
         write_preview(folder / "preview.mp4", panels)
         seconds["mp4"] = time.perf_counter() - started
+    if "html" in cfg.export:  # the GLB just written is embedded as it is
+        started = time.perf_counter()
+        glb = folder / "anim.glb" if "glb" in cfg.export else None
+        report = build_viewer(params, rig, folder / "viewer.html", glb=glb, title=folder.name)
+        announce(report.summary())
+        seconds["html"] = time.perf_counter() - started
     return seconds
