@@ -1,7 +1,8 @@
 """Drive the neck and larynx from the Live Link Face stream: ``python -m motion.live``.
 
     python -m motion.live [host=0.0.0.0] [port=11111] [out_dir=DIR] [duration=SECONDS] \\
-        [checkpoint=default|none|path] [head2neck=default|none|path] [rig=hack_rig.npz]
+        [checkpoint=default|none|path] [head2neck=default|none|path] [rig=hack_rig.npz] \\
+        [viewer=true] [viewer_port=8765] [viewer_host=127.0.0.1]
     python -m motion.live.send take=take.csv [host=127.0.0.1] [port=11111] [speed=1.0]   # no phone at hand
 
 Receives Live Link Face "ARKit" mode datagrams (packet version 6, ``motion.live.packet``) on UDP ``port``;
@@ -19,6 +20,10 @@ Stops on Ctrl-C / SIGTERM or after ``duration`` seconds, then writes ``out_dir``
 gives the same params), ``summary.json`` (``rejected`` by reason; per subject ``frames``,
 ``missing_frames``, ``latency_ms`` p50/p99/max from receipt to params).  A status line every
 ``status_seconds``.  Head angles: ``head_units``, ``*_sign``, ``recenter`` as in ``motion/head2neck/cli.py``.
+
+``viewer=true``: a live view at ``http://viewer_host:viewer_port/`` (default http://127.0.0.1:8765/): the
+character posed by each output frame over a WebSocket, tau and the joint angles as curves
+(``motion.live.viewer_server``; the first phone seen is shown).
 """
 from __future__ import annotations
 
@@ -34,6 +39,7 @@ from motion.live.config import LiveConfig
 from motion.live.outputs import write_session
 from motion.live.receiver import LiveReceiver
 from motion.live.stream import StreamOptions
+from motion.live.viewer_server import start_viewer
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models, load_models
 
@@ -66,10 +72,21 @@ def run(cfg) -> dict:
     out_dir = Path(config.out_dir) if config.out_dir else default_out_dir()
     require_new_folder(out_dir)  # refuse now, not after the session
     models = live_models(config)
+    viewer, on_frame = None, None
+    if config.viewer:
+        try:
+            viewer, on_frame = start_viewer(models, config.viewer_host, config.viewer_port, config.eta)
+        except OSError as e:
+            raise InputError(f"viewer_host={config.viewer_host} viewer_port={config.viewer_port}: cannot listen "
+                             f"({e.strerror or e})") from None
+        vhost, vport = viewer.address
+        print(f"live: live view on http://{vhost}:{vport}/", flush=True)
     try:
         receiver = LiveReceiver(models, stream_options(config), config.host, config.port, config.max_phones,
-                                config.absurd_weight)
+                                config.absurd_weight, on_frame=on_frame)
     except OSError as e:
+        if viewer is not None:
+            viewer.close()
         raise InputError(f"host={config.host} port={config.port}: cannot listen ({e.strerror or e})") from None
     stop = {"signal": None}
 
@@ -90,6 +107,8 @@ def run(cfg) -> dict:
         for number, handler in previous.items():
             signal.signal(number, handler)
         receiver.close()
+        if viewer is not None:
+            viewer.close()
     print(f"live: stopped ({stop['signal'] or ('error' if failure else 'duration')}); {receiver.received} "
           f"datagrams, {receiver.produced} frames out")
     summary = finish(receiver, out_dir, config.eta)

@@ -32,6 +32,9 @@ class LiveConfig:
     status_seconds: float = 5.0        # a status line this often (0: none)
     tick_ms: float = 2.0               # the socket is waited on at most this long between drains
     threads: int = 1                   # torch threads (one frame at a time runs on one)
+    viewer: bool = False               # serve the live view: http://viewer_host:viewer_port/ (WebSocket /ws)
+    viewer_host: str = "127.0.0.1"     # the live view's address (0.0.0.0: other machines may watch)
+    viewer_port: int = 8765            # 0: any free port (printed)
 
     def __post_init__(self) -> None:
         if self.head_units not in UNITS:
@@ -41,6 +44,8 @@ class LiveConfig:
                 raise ValueError(f"{name}={getattr(self, name)}: expected +1 or -1")
         if not 0 < self.port < 65536:
             raise ValueError(f"port={self.port}: expected 1..65535")
+        if not 0 <= self.viewer_port < 65536:
+            raise ValueError(f"viewer_port={self.viewer_port}: expected 0..65535 (0: any free port)")
         if self.duration is not None and self.duration <= 0:
             raise ValueError(f"duration={self.duration}: expected seconds > 0 (or null: until stopped)")
         if self.max_phones < 1 or self.max_gap_seconds <= 0 or self.absurd_weight <= 0 or self.tick_ms <= 0:

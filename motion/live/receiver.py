@@ -27,8 +27,9 @@ class LiveReceiver:
     """Receive Live Link Face v6 datagrams on ``host:port`` and drive one :class:`PhoneStream` per phone."""
 
     def __init__(self, models: Models, options: StreamOptions, host: str = "0.0.0.0", port: int = 11111,
-                 max_phones: int = 8, absurd_weight: float = 10.0, announce=print):
+                 max_phones: int = 8, absurd_weight: float = 10.0, announce=print, on_frame=None):
         self.models, self.options = models, options
+        self.on_frame = on_frame  # called (stream, output index) after each output frame is run (live view)
         self.max_phones, self.absurd_weight, self.announce = max_phones, absurd_weight, announce
         self.streams: dict[tuple[str, str], PhoneStream] = {}
         self.rejected: Counter = Counter()
@@ -78,7 +79,19 @@ class LiveReceiver:
 
     def flush(self) -> int:
         """Run the output frames the handled datagrams completed (``stream.run_pending``); how many."""
-        return run_pending(list(self.streams.values()), self.models, self.options)
+        streams = list(self.streams.values())
+        if self.on_frame is None:
+            return run_pending(streams, self.models, self.options)
+        before = [len(s.recorded.tau) for s in streams]
+        done = run_pending(streams, self.models, self.options)
+        if done:
+            try:
+                for stream, start in zip(streams, before):
+                    for k in range(start, len(stream.recorded.tau)):
+                        self.on_frame(stream, k)
+            except Exception:  # noqa: BLE001 -- the live view must never stop the receiver
+                pass
+        return done
 
     def drain(self, limit: int = 10000, batch: int = 64) -> int:
         """Handle every datagram waiting on the socket (at most ``limit``), running the output frames they

@@ -223,6 +223,21 @@
     plotDirty = true;
   }
 
+  // ---- live: frames from motion.live's server over a WebSocket (the page served over http) ----
+  let livePhone = null;
+  function connectLive() {
+    const socket = new WebSocket('ws://' + location.host + '/ws');
+    socket.onopen = () => { statusBox.textContent = 'live: connected'; };
+    socket.onmessage = (ev) => {
+      try {
+        const f = JSON.parse(ev.data);
+        if (livePhone === null) livePhone = f.phone;       // the first phone seen is shown
+        if (f.phone === livePhone) pushFrame(f);
+      } catch (error) { console.error(error); }
+    };
+    socket.onclose = () => { statusBox.textContent = 'live: disconnected, retrying'; setTimeout(connectLive, 1000); };
+  }
+
   // ---- controls ----
   const playButton = $('play'), scrub = $('scrub'), clock = $('clock');
   function setPlaying(on) {
@@ -364,6 +379,7 @@
         renderer.render(scene, camera);
         api.ready = true;
         requestAnimationFrame(tick);
+        if (!clip && location.protocol === 'http:') connectLive();
       } catch (error) { fail(error); }
     }, fail);
   } catch (error) { fail(error); }
