@@ -26,8 +26,9 @@ from motion.live.packet import encode
 from motion.live.receiver import LiveReceiver
 from motion.live.send.take import demo_as_take
 from motion.live.viewer_server import accept_key, start_viewer
+from tests.browser import headless_chromium
 from tests.test_live_receiver import DEVICE, send_and_drain
-from tests.test_viewer import TOLERANCE, chromium_path, theta_quaternions
+from tests.test_viewer import TOLERANCE, theta_quaternions
 
 
 @pytest.fixture(scope="module")
@@ -155,46 +156,32 @@ def test_a_client_that_never_reads_does_not_hold_up_the_receiver(live):
 
 
 def test_browser_shows_the_receivers_last_frame(live):
-    playwright_api = pytest.importorskip("playwright.sync_api", reason="Python playwright is not installed "
-                                         "(pip install '.[test]')")
-    executable = chromium_path()
-    if executable is None:
-        pytest.skip("chromium is not installed (apt-get install chromium; .ci/run does)")
     rx, server = live
     host, port = server.address
-    with playwright_api.sync_playwright() as p:
-        try:
-            browser = p.chromium.launch(executable_path=executable, headless=True,
-                                        args=["--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                                              "--no-sandbox"])
-        except Exception as error:  # noqa: BLE001 -- a browser that cannot start is the machine's, say why
-            pytest.skip(f"chromium at {executable} does not start under playwright: {error}")
-        try:
-            page = browser.new_page(viewport={"width": 480, "height": 480})
-            errors = []
-            page.on("pageerror", lambda error: errors.append(str(error)))
-            page.goto(f"http://{host}:{port}/", timeout=20_000)
-            page.wait_for_function("window.hackneck && (window.hackneck.ready || window.hackneck.error)",
-                                   timeout=20_000)
-            assert page.evaluate("window.hackneck.error") is None
-            page.wait_for_function("document.getElementById('status').textContent === 'live: connected'",
-                                   timeout=10_000)
-            send_and_drain(rx, datagrams(40))
-            stream = rx.streams[(DEVICE, "ana")]
-            last = len(stream.recorded.tau) - 1
-            assert last == 19
-            page.wait_for_function(f"window.hackneck.state().frame === {last}", timeout=10_000)
-            state = page.evaluate("window.hackneck.state()")
-            assert abs(state["time"] - last / stream.fps) < 1e-9
-            expected = theta_quaternions(stream.recorded.theta[last])
-            for j, name in enumerate(rx.models.rig.joint_names):
-                got = np.array(state["bones"][name])
-                error = min(np.abs(got - expected[j]).max(), np.abs(got + expected[j]).max())
-                assert error < TOLERANCE, (name, got, expected[j])
-            morphs = np.array([state["morphs"][name] for name in rx.models.rig.expression_names])
-            assert np.abs(morphs - stream.recorded.psi[last]).max() < TOLERANCE
-            assert abs(state["tau"] - stream.recorded.tau[last]) < TOLERANCE and state["eta"] == 1.0
-            assert np.abs(stream.recorded.theta[last]).max() > 1e-3               # a pose, not the rest
-            assert not errors, errors
-        finally:
-            browser.close()
+    with headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 480, "height": 480})
+        errors = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        page.goto(f"http://{host}:{port}/", timeout=20_000)
+        page.wait_for_function("window.hackneck && (window.hackneck.ready || window.hackneck.error)",
+                               timeout=20_000)
+        assert page.evaluate("window.hackneck.error") is None
+        page.wait_for_function("document.getElementById('status').textContent === 'live: connected'",
+                               timeout=10_000)
+        send_and_drain(rx, datagrams(40))
+        stream = rx.streams[(DEVICE, "ana")]
+        last = len(stream.recorded.tau) - 1
+        assert last == 19
+        page.wait_for_function(f"window.hackneck.state().frame === {last}", timeout=10_000)
+        state = page.evaluate("window.hackneck.state()")
+        assert abs(state["time"] - last / stream.fps) < 1e-9
+        expected = theta_quaternions(stream.recorded.theta[last])
+        for j, name in enumerate(rx.models.rig.joint_names):
+            got = np.array(state["bones"][name])
+            error = min(np.abs(got - expected[j]).max(), np.abs(got + expected[j]).max())
+            assert error < TOLERANCE, (name, got, expected[j])
+        morphs = np.array([state["morphs"][name] for name in rx.models.rig.expression_names])
+        assert np.abs(morphs - stream.recorded.psi[last]).max() < TOLERANCE
+        assert abs(state["tau"] - stream.recorded.tau[last]) < TOLERANCE and state["eta"] == 1.0
+        assert np.abs(stream.recorded.theta[last]).max() > 1e-3               # a pose, not the rest
+        assert not errors, errors

@@ -14,7 +14,6 @@ import base64
 import io
 import json
 import re
-import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from data.params import AnimationParams, rig_checksum, save_params
 from models.rig import HeadNeckModel
 from scene.viewer import build as viewer_build
 from scene.viewer import build_viewer, glb_bytes
+from tests.browser import headless_chromium
 
 TOLERANCE = 1e-4
 BACKGROUND = np.array([0x1E, 0x22, 0x28])   # the page's scene background
@@ -140,29 +140,11 @@ def test_infer_and_retarget_export_html(builtin_rig, tmp_path):
 # ----------------------------------------------------------------------------- in a real browser
 
 
-def chromium_path() -> str | None:
-    for name in ("chromium", "chromium-browser"):
-        if shutil.which(name):
-            return shutil.which(name)
-    return None
-
-
 @pytest.fixture(scope="module")
 def page(viewer):
     """The viewer open in headless Chromium (software WebGL), loaded, paused."""
-    playwright_api = pytest.importorskip("playwright.sync_api", reason="Python playwright is not installed "
-                                         "(pip install '.[test]')")
-    executable = chromium_path()
-    if executable is None:
-        pytest.skip("chromium is not installed (apt-get install chromium; .ci/run does)")
     _, path = viewer
-    with playwright_api.sync_playwright() as p:
-        try:
-            browser = p.chromium.launch(executable_path=executable, headless=True,
-                                        args=["--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                                              "--no-sandbox"])
-        except Exception as error:  # noqa: BLE001 -- a browser that cannot start is the machine's, say why
-            pytest.skip(f"chromium at {executable} does not start under playwright: {error}")
+    with headless_chromium() as browser:
         page = browser.new_page(viewport={"width": 640, "height": 640})
         errors = []
         page.on("pageerror", lambda error: errors.append(str(error)))
@@ -173,7 +155,6 @@ def page(viewer):
         page.evaluate("window.hackneck.pause()")
         page.errors = errors
         yield page
-        browser.close()
 
 
 def check_state(state: dict, params: AnimationParams, frame: int) -> None:
