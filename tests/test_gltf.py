@@ -27,7 +27,8 @@ from base.errors import InputError
 from data.mesh_io import triangulate
 from data.params import AnimationParams, rig_checksum, save_params
 from models.rig import HeadNeckModel
-from scene.gltf import export_glb, larynx_targets, resolve_rig, run
+from scene.gltf import export_glb, larynx_targets, resolve_rig
+from scene.gltf.cli import run
 
 REPO = Path(__file__).resolve().parents[1]
 VALIDATOR_SCRIPT = REPO / "tests" / "gltf_validate.mjs"

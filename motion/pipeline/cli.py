@@ -11,6 +11,7 @@ from motion.pipeline.config import InferConfig
 from motion.pipeline.folder import print_summary, run_folder
 from motion.pipeline.models import load_models
 from motion.pipeline.take import run_take
+from scene.fbx import blender_executable
 
 
 def default_out_dir() -> Path:
@@ -19,6 +20,8 @@ def default_out_dir() -> Path:
 
 def run(cfg) -> list[dict]:
     config: InferConfig = to_dataclass(cfg, where="infer")
+    if "fbx" in config.export:
+        blender_executable()  # before any work: one line saying how to install it, exit status 2
     out_dir = Path(config.out_dir) if config.out_dir else default_out_dir()
     source = Path(config.expressions) if config.expressions is not None else None
     if source is not None and source.is_dir():

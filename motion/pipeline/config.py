@@ -6,9 +6,10 @@ from typing import Any
 
 from base.cli import register_config
 from motion.swallow import PlaybackConfig
+from scene.fbx import FBX_UNITS
 
 MESH_FORMATS = ("ply", "obj")
-EXPORTS = ("glb", "mp4", "html")
+EXPORTS = ("glb", "mp4", "html", "fbx")
 
 
 @dataclass
@@ -43,7 +44,8 @@ class InferConfig:
     character: str = "human"           # human | giraffe (built from the rig) | a character file (.npz)
     meshes: bool = False               # one mesh per frame in meshes/
     mesh_format: str = "ply"           # ply | obj
-    export: list[str] = field(default_factory=list)  # glb, mp4, html (viewer.html)
+    export: list[str] = field(default_factory=list)  # glb, mp4, html (viewer.html), fbx (anim.fbx, needs Blender)
+    fbx_units: str = "cm"              # cm (Unreal, Maya) | m
     plot: bool = True
     workers: int = 1                   # takes of a folder run in this many processes
     threads: int = 1                   # torch threads per process (per-frame decoding runs on one)
@@ -51,6 +53,8 @@ class InferConfig:
     def __post_init__(self) -> None:
         if self.mesh_format not in MESH_FORMATS:
             raise ValueError(f"mesh_format={self.mesh_format}: expected one of {', '.join(MESH_FORMATS)}")
+        if self.fbx_units not in FBX_UNITS:
+            raise ValueError(f"fbx_units={self.fbx_units}: expected one of {', '.join(FBX_UNITS)}")
         unknown = [e for e in self.export if e not in EXPORTS]
         if unknown:
             raise ValueError(f"export={unknown}: expected some of {', '.join(EXPORTS)}")

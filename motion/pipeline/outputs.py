@@ -1,5 +1,5 @@
-"""The files of one take: params.npz / params.csv, the plot, per-frame meshes, anim.glb, preview.mp4 and
-viewer.html."""
+"""The files of one take: params.npz / params.csv, the plot, per-frame meshes, anim.glb, preview.mp4,
+viewer.html and anim.fbx."""
 from __future__ import annotations
 
 import time
@@ -16,6 +16,7 @@ from data.params import AnimationParams, load_params, save_params
 from models.rig import HeadNeckModel
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models
+from scene.fbx import export_fbx
 from scene.gltf import export_glb
 from scene.preview import Panel, anatomical_degrees, write_preview
 from scene.viewer import build_viewer
@@ -110,4 +111,11 @@ def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, fol
         report = build_viewer(params, rig, folder / "viewer.html", glb=glb, title=folder.name)
         announce(report.summary())
         seconds["html"] = time.perf_counter() - started
+    if "fbx" in cfg.export:  # Blender converts the GLB just written, else one made for it
+        started = time.perf_counter()
+        glb = folder / "anim.glb" if "glb" in cfg.export else None
+        take = Path(str(params.producers.get("source", "hackneck"))).stem
+        report = export_fbx(params, rig, folder / "anim.fbx", cfg.fbx_units, glb=glb, take=take)
+        announce(report.summary())
+        seconds["fbx"] = time.perf_counter() - started
     return seconds

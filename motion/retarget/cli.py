@@ -1,7 +1,8 @@
 """Retarget head-and-neck motion from one character to another: ``python -m motion.retarget``.
 
     python -m motion.retarget source=params.npz character=giraffe out_dir=giraffe_clip/ [rig=hack_rig.npz]
-        [skinning=lbs|dqs] [mesh_format=ply|obj] [export=[glb,html]] [gains=auto|unit|giraffe] [clamp=true]
+        [skinning=lbs|dqs] [mesh_format=ply|obj] [export=[glb,html,fbx]] [fbx_units=cm|m]
+        [gains=auto|unit|giraffe] [clamp=true]
     python -m motion.retarget mode=picture character=giraffe [rig=hack_rig.npz] out=docs/human_giraffe_poses.png
 
 ``source`` is a ``params.npz`` (``data.params``: ``time``, ``fps``, ``theta [T,8,3]`` in the bone frames of
@@ -24,7 +25,7 @@ rotation, ``rig`` = the target's rig file, with its checksum: ``character.npz`` 
 character is built on the fly), ``meshes/frame_00000.ply`` ... (``mesh_format=obj`` with UVs), and
 ``animation.glb`` with ``export=[glb]`` (``scene.gltf.export_glb``; glTF viewers skin linearly, so the GLB
 is LBS whatever ``skinning`` is), ``viewer.html`` with ``export=[html]`` (``scene.viewer``: the clip in a browser,
-offline).
+offline), ``animation.fbx`` with ``export=[fbx]`` (``scene.fbx``: needs Blender).
 
 Giraffe gains (:data:`GIRAFFE_GAINS`): giraffes move the neck mostly at its base; the joint between the
 first and second thoracic vertebrae is the fulcrum of giraffe neck motion (Gunji & Endo, "Functional
@@ -57,6 +58,7 @@ from motion.retarget.picture import pose_picture
 from motion.retarget.posing import MESH_FORMATS, SKINNINGS, supports_skinning, write_meshes
 from motion.retarget.transfer import GAIN_CHOICES, default_gains, retarget_params
 from scene.characters import GiraffeSettings, load_character
+from scene.fbx import FBX_UNITS, blender_executable, export_fbx
 from scene.gltf import export_glb
 from scene.viewer import build_viewer
 
@@ -70,7 +72,8 @@ class RetargetConfig:
     mode: retarget (source -> out_dir) or picture (the reference poses of the source rig and the character
     -> out); source: params.npz; out_dir: the output folder (fresh or empty); character: human | giraffe |
     a character .npz; rig: the source rig (default: the one recorded in source; builtin or a rig file);
-    skinning: lbs | dqs; meshes: write posed meshes; mesh_format: ply | obj; export: glb (the GLB), html (viewer.html);
+    skinning: lbs | dqs; meshes: write posed meshes; mesh_format: ply | obj; export: glb (the GLB), html (viewer.html),
+    fbx (animation.fbx through Blender; fbx_units cm | m);
     gains: auto (the giraffe's on a giraffe) | unit | giraffe; joint_gains: explicit gains, 8 (one per
     joint) or 24 (joint-major, flexion/axial/lateral) numbers, overriding ``gains``; clamp: clamp to the
     target's limits (None: when gains apply); limit_margin: scales the limits; batch: frames posed at once;
@@ -87,6 +90,7 @@ class RetargetConfig:
     meshes: bool = True
     mesh_format: str = "ply"
     export: list[str] = field(default_factory=list)
+    fbx_units: str = "cm"
     gains: str = "auto"
     joint_gains: list[float] | None = None
     clamp: bool | None = None
@@ -106,9 +110,11 @@ class RetargetConfig:
                                     ("mesh_format", self.mesh_format, MESH_FORMATS)):
             if value not in choices:
                 raise ValueError(f"{key}={value}: expected one of {', '.join(choices)}")
-        unknown = [e for e in self.export if e not in ("glb", "html")]
+        unknown = [e for e in self.export if e not in ("glb", "html", "fbx")]
         if unknown:
-            raise ValueError(f"export={list(self.export)}: expected some of glb, html")
+            raise ValueError(f"export={list(self.export)}: expected some of glb, html, fbx")
+        if self.fbx_units not in FBX_UNITS:
+            raise ValueError(f"fbx_units={self.fbx_units}: expected one of {', '.join(FBX_UNITS)}")
         if self.joint_gains is not None and len(self.joint_gains) not in (8, 24):
             raise ValueError(f"joint_gains has {len(self.joint_gains)} values, expected 8 (per joint) or 24 "
                              "(joint x axis)")
@@ -147,6 +153,8 @@ def run(cfg) -> AnimationParams | None:
         print(f"wrote {settings.out}")
         return None
 
+    if "fbx" in settings.export:
+        blender_executable()  # before any work: one line saying how to install it, exit status 2
     started = timer.perf_counter()
     params = load_params(settings.source)
     source, source_label = source_rig(params, settings.source, settings.rig)
@@ -184,6 +192,10 @@ def run(cfg) -> AnimationParams | None:
     if "html" in settings.export:
         glb = out_dir / "animation.glb" if "glb" in settings.export else None
         lines.append(build_viewer(result, target, out_dir / "viewer.html", glb=glb, title=out_dir.name).summary())
+    if "fbx" in settings.export:
+        glb = out_dir / "animation.glb" if "glb" in settings.export else None
+        lines.append(export_fbx(result, target, out_dir / "animation.fbx", settings.fbx_units, glb=glb,
+                                take=out_dir.name).summary())
     lines.append(f"done in {timer.perf_counter() - started:.1f} s")
     print("\n".join(lines))
     return result

@@ -11,7 +11,6 @@ What the file holds: :mod:`scene.gltf.cli`.  The modules:
 - :mod:`scene.gltf.cli`: the command line.  :func:`resolve_rig` is ``scene.characters.resolve_rig``.
 """
 from scene.characters import resolve_rig
-from scene.gltf.cli import GltfConfig, run
 from scene.gltf.clip import (
     ZERO_DELTA_CM,
     ZERO_NORMAL_DELTA,
@@ -48,9 +47,9 @@ from scene.gltf.morphs import (
 
 __all__ = [
     "DEFAULT_LARYNX_ERROR_CM", "INFLUENCE_CHOICES", "MAX_LARYNX_TARGETS", "METRES_PER_CM", "SKIN_COLOUR",
-    "ZERO_DELTA_CM", "ZERO_NORMAL_DELTA", "ExportData", "ExportReport", "GltfConfig", "Influences",
+    "ZERO_DELTA_CM", "ZERO_NORMAL_DELTA", "ExportData", "ExportReport", "Influences",
     "LarynxTargets", "SeamSplit", "build_gltf", "check_params", "corrective_features", "corrective_weights",
     "evaluate_export", "export_data", "export_error_cm", "export_glb", "hat_weights", "larynx_region",
     "larynx_targets", "local_rotations", "node_world_matrices", "quaternion_matrices", "resolve_rig",
-    "rig_vertices", "run", "shape_normals", "skin_influences", "split_uv_seams",
+    "rig_vertices", "shape_normals", "skin_influences", "split_uv_seams",
 ]

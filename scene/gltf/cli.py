@@ -1,6 +1,7 @@
 """``python -m scene.gltf``: animated glTF 2.0 (``.glb``) export of a rig driven by a ``params.npz``.
 
     python -m scene.gltf source=params.npz out=anim.glb [rig=rig.npz] [character=giraffe] [max_influences=8|4]
+    python -m scene.gltf source=params.npz out=anim.fbx [fbx_units=cm|m] [...]   (FBX through Blender, scene.fbx)
 
 One binary glTF holds the character at its real size and its whole clip:
 
@@ -28,12 +29,14 @@ stored as sparse accessors.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from omegaconf import MISSING
 
 from base.cli import register_config, to_dataclass
 from data.params import load_params
 from scene.characters import resolve_rig
+from scene.fbx import FBX_UNITS, FbxReport, blender_executable, export_fbx
 from scene.gltf.document import ExportReport, export_glb
 from scene.gltf.mesh import INFLUENCE_CHOICES
 from scene.gltf.morphs import DEFAULT_LARYNX_ERROR_CM
@@ -46,7 +49,7 @@ class GltfConfig:
     source: params.npz; out: the .glb; rig: a rig file overriding the one recorded in source;
     character: human | giraffe | a character file, built on ``rig`` (``scene.characters``); max_influences: 8 or 4;
     larynx_error_cm: larynx morph-target bound; check: evaluate the file's data against the rig;
-    morph_normals: store the morph targets' normal changes.
+    morph_normals: store the morph targets' normal changes; fbx_units: cm | m when ``out`` is an .fbx.
     """
 
     source: str = MISSING
@@ -57,6 +60,7 @@ class GltfConfig:
     larynx_error_cm: float = DEFAULT_LARYNX_ERROR_CM
     check: bool = True
     morph_normals: bool = True
+    fbx_units: str = "cm"
     threads: int = 1
 
     def __post_init__(self) -> None:
@@ -64,16 +68,26 @@ class GltfConfig:
             raise ValueError(f"max_influences={self.max_influences}: expected one of {list(INFLUENCE_CHOICES)}")
         if not self.larynx_error_cm > 0:
             raise ValueError(f"larynx_error_cm={self.larynx_error_cm}: expected a positive bound in cm")
+        if self.fbx_units not in FBX_UNITS:
+            raise ValueError(f"fbx_units={self.fbx_units}: expected one of {', '.join(FBX_UNITS)}")
 
 
 register_config("gltf_schema", GltfConfig)
 
 
-def run(cfg) -> ExportReport:
-    """``python -m scene.gltf``: export and print the report."""
+def run(cfg) -> ExportReport | FbxReport:
+    """``python -m scene.gltf``: export (the format by ``out``'s suffix) and print the report."""
     settings = to_dataclass(cfg, GltfConfig, where="scene.gltf")
+    as_fbx = Path(settings.out).suffix.lower() == ".fbx"
+    if as_fbx:
+        blender_executable()  # before any work
     params = load_params(settings.source)
     rig = resolve_rig(params, settings.source, settings.rig, settings.character)
+    if as_fbx:
+        report = export_fbx(params, rig, settings.out, settings.fbx_units, take=Path(settings.out).stem,
+                            max_influences=settings.max_influences, larynx_error_cm=settings.larynx_error_cm)
+        print(report.summary())
+        return report
     report = export_glb(params, rig, settings.out, settings.max_influences, settings.larynx_error_cm,
                         settings.check, source=settings.source, morph_normals=settings.morph_normals)
     print(report.summary())
