@@ -6,7 +6,8 @@ is written atomically, and ``export=[html]`` writes it from ``infer.py`` and ``m
 ``chromium`` and Python ``playwright`` (driven with ``executable_path``; ``.ci/run`` installs chromium): at
 several times the bone rotations and expression weights the page applied equal the params within 1e-4, play
 and pause move the clock, the range input scrubs, a live-style ``applyFrame`` poses the character, and a
-screenshot shows a lit (not black) character.  Skipped, with the reason, where either is missing.
+screenshot shows a lit (not black) character whose silhouette is the rig's own, projected with the page's
+camera (IoU >= 0.8).  Skipped, with the reason, where either is missing.
 """
 from __future__ import annotations
 
@@ -220,3 +221,45 @@ def test_browser_shows_a_lit_character(page, viewer):
     # framed: the character's box lies inside the view, away from its edges
     rows, cols = np.flatnonzero(character.any(1)), np.flatnonzero(character.any(0))
     assert rows[0] > 0 and cols[0] > 0 and rows[-1] < image.shape[0] - 1 and cols[-1] < image.shape[1] - 1
+
+
+def projected_silhouette(rig: HeadNeckModel, params: AnimationParams, frame: int, camera: dict) -> np.ndarray:
+    """The rig's mesh at ``frame`` (metres, the GLB's world) projected with the page's camera matrices and
+    filled triangle by triangle: a boolean mask [height, width]."""
+    import cv2
+
+    from data.mesh_io import triangulate
+
+    with torch.no_grad():
+        vertices = rig(torch.as_tensor(params.theta[frame:frame + 1]), torch.as_tensor(params.psi[frame:frame + 1]),
+                       torch.as_tensor(params.tau[frame:frame + 1]),
+                       torch.as_tensor(params.eta[frame:frame + 1]))[0].double().numpy() / 100.0
+    matrix = (np.array(camera["projection"]).reshape(4, 4).T @ np.array(camera["view"]).reshape(4, 4).T
+              @ np.array(camera["model"]).reshape(4, 4).T)
+    clip_space = np.c_[vertices, np.ones(len(vertices))] @ matrix.T
+    ndc = clip_space[:, :2] / clip_space[:, 3:4]
+    width, height = camera["width"], camera["height"]
+    pixels = np.stack([(ndc[:, 0] + 1) / 2 * width, (1 - ndc[:, 1]) / 2 * height], axis=1)
+    mask = np.zeros((height, width), np.uint8)
+    shift = 4
+    for triangle in triangulate(rig.faces.numpy()):
+        cv2.fillConvexPoly(mask, np.round(pixels[triangle] * (1 << shift)).astype(np.int32), 1, cv2.LINE_8, shift)
+    return mask.astype(bool)
+
+
+def test_browser_silhouette_is_the_rigs_projected_with_the_pages_camera(page, viewer, builtin_rig):
+    from PIL import Image
+
+    params, _ = viewer
+    for frame in (5, 20):
+        page.evaluate("(t) => window.hackneck.seek(t)", float(params.time[frame]))
+        page.wait_for_timeout(100)
+        camera = page.evaluate("window.hackneck.camera()")
+        shot = Image.open(io.BytesIO(page.locator("#view canvas").screenshot())).convert("RGB")
+        assert shot.size == (camera["width"], camera["height"])
+        image = np.asarray(shot, np.float64)
+        seen = np.abs(image - BACKGROUND).sum(-1) > 30
+        expected = projected_silhouette(builtin_rig, params, frame, camera)
+        iou = (seen & expected).sum() / (seen | expected).sum()
+        assert expected.mean() > 0.05, "the projected rig must cover part of the view"
+        assert iou >= 0.8, f"frame {frame}: silhouette IoU {iou:.3f}"

@@ -3,7 +3,8 @@ base64, the clip's params as base64 float arrays) that plays a ``params.npz`` on
 
 The page (``page.html`` + ``viewer.js`` in this package) plays, pauses and scrubs the clip, draws tau and
 the joint angles under the 3D view, and exposes ``window.hackneck`` (``state()``, ``seek(s)``, ``play()``,
-``pause()``, ``applyFrame(frame)``, ``pushFrame(frame)``) so tests and a live source can drive it.
+``pause()``, ``applyFrame(frame)``, ``pushFrame(frame)``, ``camera()``: the view's matrices) so tests and a
+live source can drive it.
 """
 from __future__ import annotations
 

@@ -361,6 +361,15 @@
       }
       return out;
     },
+    // The view as the last render drew it: column-major 4x4 matrices (three.js's order) taking the GLB's
+    // world coordinates (metres, y up) to clip space, and the canvas size in CSS pixels.
+    camera() {
+      const canvas = renderer.domElement;
+      return { projection: Array.from(camera.projectionMatrix.elements),
+               view: Array.from(camera.matrixWorldInverse.elements),
+               model: mesh ? Array.from(mesh.parent.matrixWorld.elements) : null,
+               width: canvas.clientWidth, height: canvas.clientHeight };
+    },
     seek, applyFrame, pushFrame,
     play() { setPlaying(true); },
     pause() { setPlaying(false); },
