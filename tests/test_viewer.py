@@ -263,3 +263,47 @@ def test_browser_silhouette_is_the_rigs_projected_with_the_pages_camera(page, vi
         iou = (seen & expected).sum() / (seen | expected).sum()
         assert expected.mean() > 0.05, "the projected rig must cover part of the view"
         assert iou >= 0.8, f"frame {frame}: silhouette IoU {iou:.3f}"
+
+
+@pytest.fixture(scope="module")
+def pair_page(builtin_rig, tmp_path_factory):
+    """The viewer of a giraffe's clip with the human it was retargeted from beside it, open in Chromium."""
+    from motion.retarget import default_gains, retarget_params
+    from scene.characters import load_character
+
+    human = clip(builtin_rig, seed=4)
+    giraffe = HeadNeckModel(load_character("giraffe", builtin_rig.rig))
+    params = retarget_params(human, builtin_rig, giraffe, "character:giraffe", default_gains(giraffe))
+    path = tmp_path_factory.mktemp("pair") / "viewer.html"
+    build_viewer(params, giraffe, path, companion=(human, builtin_rig))
+    with headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 900, "height": 640})
+        page.goto(path.as_uri())
+        page.wait_for_function("window.hackneck && (window.hackneck.ready || window.hackneck.error)", timeout=30_000)
+        assert page.evaluate("window.hackneck.error") is None
+        page.evaluate("window.hackneck.pause()")
+        yield page, params, giraffe, human
+
+
+def test_browser_plays_the_giraffe_beside_the_human_on_one_clock(pair_page, builtin_rig):
+    from PIL import Image
+
+    page, params, giraffe, human = pair_page
+    frame = 12
+    state = page.evaluate("(t) => window.hackneck.seek(t)", float(params.time[frame]))
+    check_state(state, params, frame)                      # the main character: the giraffe's own params
+    check_state(state["companion"], human, frame)          # beside it the human, at the same frame
+    assert not np.allclose(params.theta[frame], human.theta[frame], atol=1e-3), "the gains change the giraffe"
+    page.evaluate("document.getElementById('title').style.display = 'none';"
+                  "document.getElementById('status').style.display = 'none'")
+    page.wait_for_timeout(100)
+    camera = page.evaluate("window.hackneck.camera()")
+    image = np.asarray(Image.open(io.BytesIO(page.locator("#view canvas").screenshot())).convert("RGB"), np.float64)
+    seen = np.abs(image - BACKGROUND).sum(-1) > 30
+    giraffe_mask = projected_silhouette(giraffe, params, frame, camera)
+    human_mask = projected_silhouette(builtin_rig, human, frame, {**camera, "model": camera["companionModel"]})
+    expected = giraffe_mask | human_mask
+    assert not (giraffe_mask & human_mask).any(), "side by side, not overlapping"
+    assert np.flatnonzero(human_mask.any(0)).max() < np.flatnonzero(giraffe_mask.any(0)).min(), "the human on the left"
+    iou = (seen & expected).sum() / (seen | expected).sum()
+    assert iou >= 0.8, f"silhouette IoU {iou:.3f}"

@@ -108,7 +108,8 @@ def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, fol
     if "html" in cfg.export:  # the GLB just written is embedded as it is
         started = time.perf_counter()
         glb = folder / "anim.glb" if "glb" in cfg.export else None
-        report = build_viewer(params, rig, folder / "viewer.html", glb=glb, title=folder.name)
+        companion = None if models.character is None else (load_params(folder / "source_params.npz"), models.rig)
+        report = build_viewer(params, rig, folder / "viewer.html", glb=glb, title=folder.name, companion=companion)
         announce(report.summary())
         seconds["html"] = time.perf_counter() - started
     if "fbx" in cfg.export:  # Blender converts the GLB just written, else one made for it

@@ -191,7 +191,9 @@ def run(cfg) -> AnimationParams | None:
         lines.append(report.summary())
     if "html" in settings.export:
         glb = out_dir / "animation.glb" if "glb" in settings.export else None
-        lines.append(build_viewer(result, target, out_dir / "viewer.html", glb=glb, title=out_dir.name).summary())
+        companion = None if settings.character == "human" else (params, source)   # the source beside the character
+        lines.append(build_viewer(result, target, out_dir / "viewer.html", glb=glb, title=out_dir.name,
+                                  companion=companion).summary())
     if "fbx" in settings.export:
         glb = out_dir / "animation.glb" if "glb" in settings.export else None
         lines.append(export_fbx(result, target, out_dir / "animation.fbx", settings.fbx_units, glb=glb,

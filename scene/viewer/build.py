@@ -73,8 +73,9 @@ def clip_header(params: AnimationParams, rig: HeadNeckModel, title: str = "") ->
     }
 
 
-def render_page(header: dict, glb: bytes) -> str:
-    """The html text: ``page.html`` with the three.js bundle, ``viewer.js``, the header and the GLB inlined."""
+def render_page(header: dict, glb: bytes, companion_glb: bytes = b"") -> str:
+    """The html text: ``page.html`` with the three.js bundle, ``viewer.js``, the header and the GLBs inlined
+    (the companion's empty when ``header`` has no ``companion``)."""
     # "<" escaped so that no "</script>" can end the JSON block early
     header_json = json.dumps(header, separators=(",", ":")).replace("<", "\\u003c")
     values = {
@@ -82,6 +83,7 @@ def render_page(header: dict, glb: bytes) -> str:
         "VIEWER": (HERE / "viewer.js").read_text(encoding="utf-8"),
         "HEADER": header_json,
         "GLB": base64.b64encode(glb).decode("ascii"),
+        "COMPANION_GLB": base64.b64encode(companion_glb).decode("ascii"),
         "TITLE": (header.get("title") or "hackneck viewer").replace("&", "&amp;").replace("<", "&lt;"),
     }
     for name in ("THREE", "VIEWER"):
@@ -93,7 +95,8 @@ def render_page(header: dict, glb: bytes) -> str:
 
 
 def build_viewer(source: str | os.PathLike | AnimationParams, rig: HeadNeckModel | None, out_path: str | os.PathLike,
-                 glb: bytes | str | os.PathLike | None = None, title: str | None = None) -> ViewerReport:
+                 glb: bytes | str | os.PathLike | None = None, title: str | None = None,
+                 companion: tuple[AnimationParams, HeadNeckModel] | None = None) -> ViewerReport:
     """Write ``out_path`` (atomically): the viewer page of the clip ``source`` on ``rig``.
 
     Args:
@@ -101,6 +104,8 @@ def build_viewer(source: str | os.PathLike | AnimationParams, rig: HeadNeckModel
         rig: the rig they drive; None: the rig recorded in the params (``scene.characters.resolve_rig``).
         glb: the clip's GLB (bytes or a path, e.g. the ``anim.glb`` just written); None: built here.
         title: shown in the page (default the source's name).
+        companion: another character's clip on the same clock and its rig (the human a giraffe's clip was
+            retargeted from), shown to the left; ``state()`` reports it under ``companion``.
     """
     started = timer.perf_counter()
     if isinstance(source, AnimationParams):
@@ -113,7 +118,15 @@ def build_viewer(source: str | os.PathLike | AnimationParams, rig: HeadNeckModel
         glb = glb_bytes(params, rig, name)
     elif not isinstance(glb, (bytes, bytearray)):
         glb = Path(glb).read_bytes()
-    text = render_page(clip_header(params, rig, title if title is not None else Path(name).name), bytes(glb))
+    header = clip_header(params, rig, title if title is not None else Path(name).name)
+    companion_glb = b""
+    if companion is not None:
+        companion_params, companion_rig = companion
+        if len(companion_params) != len(params) or not np.allclose(companion_params.time, params.time, atol=1e-9):
+            raise ValueError(f"{name}: the companion's clip has other frame times than the clip's")
+        header["companion"] = clip_header(companion_params, companion_rig, "")
+        companion_glb = glb_bytes(companion_params, companion_rig, f"{name} (companion)")
+    text = render_page(header, bytes(glb), companion_glb)
     out_path = Path(out_path)
     raw = text.encode("utf-8")
     with atomic_path(out_path) as tmp:

@@ -5,7 +5,9 @@
    rest, psi: [E] | morphs: {expression: weight}, tau, eta}.  applyFrame(frame) poses the character;
    pushFrame(frame) also appends it to the curves (live).  The larynx morph weights (eta times hat weights of
    tau on the GLB's larynx targets) and the pose correctives ((R - I) entries of theta) are computed here as
-   scene.gltf computes them. */
+   scene.gltf computes them.  With a companion (header.companion and a second GLB: the human beside the
+   giraffe it drives), the companion stands to the left and plays its own clip on the same clock; state()
+   reports it under "companion". */
 (function () {
   'use strict';
   const { THREE, GLTFLoader, OrbitControls } = window.HACKNECK_THREE;
@@ -27,18 +29,16 @@
   }
 
   const header = JSON.parse($('hackneck-header').textContent);
-  const joints = header.joints, expressions = header.expressions;
-  const J = joints.length, E = expressions.length;
-  const rest = header.rest.map((q) => new THREE.Quaternion(q[0], q[1], q[2], q[3]));
-  const restInverse = rest.map((q) => q.clone().invert());
+  const joints = header.joints, J = joints.length;     // the main character's, for the curves
 
-  // The clip (absent in live mode): typed arrays, frame-major.
-  let clip = null;
-  if (header.data && header.frames > 0) {
-    const d = header.data;
-    clip = { time: decode(d.time, Float64Array), theta: decode(d.theta, Float32Array), psi: decode(d.psi, Float32Array),
-             tau: decode(d.tau, Float32Array), eta: decode(d.eta, Float32Array), count: header.frames };
+  // A clip (absent in live mode): typed arrays, frame-major.
+  function readClip(spec) {
+    if (!(spec.data && spec.frames > 0)) return null;
+    const d = spec.data;
+    return { time: decode(d.time, Float64Array), theta: decode(d.theta, Float32Array), psi: decode(d.psi, Float32Array),
+             tau: decode(d.tau, Float32Array), eta: decode(d.eta, Float32Array), count: spec.frames };
   }
+  const clip = readClip(header);
 
   // Curves: the clip's arrays, or a bounded history of pushed frames.
   const LIVE_SECONDS = 20, LIVE_MAX = 20000;
@@ -70,11 +70,14 @@
   new ResizeObserver(resize).observe(view);
   window.addEventListener('resize', resize);
 
-  // ---- the character ----
-  let mesh = null, bones = [], larynx = [], correctives = [];
-  const current = { time: 0, frame: 0, tau: 0, eta: 0, theta: new Float64Array(J * 3), relative: rest.map(() => new THREE.Quaternion()) };
-
-  function setup(gltf) {
+  // ---- the characters: a puppet is one GLB's mesh and bones with the names and rest rotations of its spec ----
+  function makePuppet(spec, gltf) {
+    const p = { joints: spec.joints, expressions: spec.expressions, J: spec.joints.length, E: spec.expressions.length,
+                rest: spec.rest.map((q) => new THREE.Quaternion(q[0], q[1], q[2], q[3])), clip: readClip(spec),
+                root: gltf.scene, mesh: null, bones: [], larynx: [], correctives: [] };
+    p.restInverse = p.rest.map((q) => q.clone().invert());
+    p.current = { time: 0, frame: 0, tau: 0, eta: 0, theta: new Float64Array(p.J * 3), relative: p.rest.map(() => new THREE.Quaternion()) };
+    let mesh = null;
     const root = gltf.scene;
     root.traverse((o) => {
       if (o.isMesh && o.morphTargetDictionary && !mesh) mesh = o;
@@ -88,7 +91,8 @@
       }
     });
     if (!mesh) throw new Error('the GLB holds no mesh with morph targets');
-    bones = joints.map((name) => {
+    p.mesh = mesh;
+    p.bones = p.joints.map((name) => {
       const bone = root.getObjectByName(THREE.PropertyBinding.sanitizeNodeName(name));
       if (!bone) throw new Error('joint ' + name + ' is not in the GLB');
       return bone;
@@ -98,18 +102,30 @@
     const larynxNames = names.filter((n) => n.startsWith('larynx_tau')).sort((a, b) =>
       mesh.morphTargetDictionary[a] - mesh.morphTargetDictionary[b]);
     const taus = extras.larynx_taus || larynxNames.map((n) => parseFloat(n.slice('larynx_tau'.length)));
-    larynx = larynxNames.map((n, k) => ({ index: mesh.morphTargetDictionary[n], tau: taus[k] }));
+    p.larynx = larynxNames.map((n, k) => ({ index: mesh.morphTargetDictionary[n], tau: taus[k] }));
     for (const n of names) {
       const m = /^corrective_(.+)_r(\d)c(\d)$/.exec(n);
-      if (m) correctives.push({ index: mesh.morphTargetDictionary[n], joint: joints.indexOf(m[1]), r: +m[2], c: +m[3] });
+      if (m) p.correctives.push({ index: mesh.morphTargetDictionary[n], joint: p.joints.indexOf(m[1]), r: +m[2], c: +m[3] });
     }
     scene.add(root);
-    frame(root);
+    return p;
   }
 
-  function frame(root) {
-    root.updateMatrixWorld(true);
-    const box = new THREE.Box3().setFromObject(mesh);
+  let main = null, companion = null;
+  let current = { time: 0, frame: 0, tau: 0, eta: 0, theta: new Float64Array(J * 3) };   // main.current once loaded
+
+  // The companion to the left of the main character, a fifth of their widths apart.
+  function placeSideBySide() {
+    main.root.updateMatrixWorld(true); companion.root.updateMatrixWorld(true);
+    const a = new THREE.Box3().setFromObject(main.mesh), b = new THREE.Box3().setFromObject(companion.mesh);
+    const gap = 0.2 * Math.max(a.max.x - a.min.x, b.max.x - b.min.x);
+    companion.root.position.x += a.min.x - gap - b.max.x;
+    companion.root.updateMatrixWorld(true);
+  }
+
+  function frame() {
+    const box = new THREE.Box3();
+    for (const p of companion ? [main, companion] : [main]) { p.root.updateMatrixWorld(true); box.expandByObject(p.mesh); }
     const size = box.getSize(new THREE.Vector3()), centre = box.getCenter(new THREE.Vector3());
     const radius = Math.max(size.length() / 2, 1e-3);
     const distance = radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2)) * 1.05;
@@ -138,7 +154,13 @@
 
   const axis = new THREE.Vector3(), rotation = new THREE.Matrix4();
   function applyFrame(f) {
-    if (!mesh) return;
+    if (!main) return;
+    posePuppet(main, f);
+    updateClock();
+  }
+
+  function posePuppet(p, f) {
+    const { mesh, bones, larynx, correctives, joints, rest, current, J, E, expressions } = p;
     const influences = mesh.morphTargetInfluences;
     for (let j = 0; j < J; j++) {
       const q = current.relative[j];
@@ -158,8 +180,8 @@
       }
       bones[j].quaternion.copy(rest[j]).multiply(q);
     }
-    if (f.psi) for (let e = 0; e < E; e++) setMorph(influences, expressions[e], f.psi[e]);
-    else if (f.morphs) for (const name in f.morphs) setMorph(influences, name, f.morphs[name]);
+    if (f.psi) for (let e = 0; e < E; e++) setMorph(mesh, expressions[e], f.psi[e]);
+    else if (f.morphs) for (const name in f.morphs) setMorph(mesh, name, f.morphs[name]);
     if (f.tau !== undefined) current.tau = +f.tau;
     if (f.eta !== undefined) current.eta = +f.eta;
     if (larynx.length) {
@@ -172,28 +194,27 @@
     }
     if (f.time !== undefined) current.time = +f.time;
     current.frame = f.frame !== undefined ? f.frame : current.frame + 1;
-    updateClock();
   }
 
-  function setMorph(influences, name, weight) {
+  function setMorph(mesh, name, weight) {
     const index = mesh.morphTargetDictionary[name];
-    if (index !== undefined) influences[index] = +weight;
+    if (index !== undefined) mesh.morphTargetInfluences[index] = +weight;
   }
 
   // ---- the clip's clock ----
   let playing = false, playTime = 0;
   const start = clip ? clip.time[0] : 0, end = clip ? clip.time[clip.count - 1] : 0;
 
-  function clipFrame(t) {
-    const time = clip.time, n = clip.count;
+  function clipFrame(clip, t) {
+    const time = clip.time, n = clip.count, J = clip.theta.length / n, E = clip.psi.length / n;
     t = Math.min(Math.max(t, start), end);
     let lo = 0, hi = n - 1;                       // the last frame at or before t
     while (lo < hi) { const mid = (lo + hi + 1) >> 1; if (time[mid] <= t) lo = mid; else hi = mid - 1; }
     const i = lo, k = Math.min(i + 1, n - 1);
     const a = k > i ? (t - time[i]) / (time[k] - time[i]) : 0;
     const mix = (arr, width, c) => arr[i * width + c] * (1 - a) + arr[k * width + c] * a;
-    const theta = new Array(J * 3), psi = new Array(E);
-    for (let c = 0; c < J * 3; c++) theta[c] = a ? mix(clip.theta, J * 3, c) : clip.theta[i * J * 3 + c];
+    const theta = new Array(J), psi = new Array(E);
+    for (let c = 0; c < J; c++) theta[c] = a ? mix(clip.theta, J, c) : clip.theta[i * J + c];
     for (let c = 0; c < E; c++) psi[c] = a ? mix(clip.psi, E, c) : clip.psi[i * E + c];
     return { time: t, frame: i, theta, psi, tau: a ? mix(clip.tau, 1, 0) : clip.tau[i], eta: a ? mix(clip.eta, 1, 0) : clip.eta[i] };
   }
@@ -201,7 +222,8 @@
   function seek(seconds) {
     if (!clip) return api.state();
     playTime = Math.min(Math.max(+seconds, start), end);
-    applyFrame(clipFrame(playTime));
+    applyFrame(clipFrame(clip, playTime));
+    if (companion && companion.clip) posePuppet(companion, clipFrame(companion.clip, playTime));
     return api.state();
   }
 
@@ -344,21 +366,29 @@
     requestAnimationFrame(tick);
   }
 
+  // A puppet's last applied frame: each joint's rotation relative to rest (w >= 0) and the expressions' weights.
+  function puppetState(p) {
+    const c = p.current;
+    const out = { time: c.time, frame: c.frame, bones: {}, morphs: {}, tau: c.tau, eta: c.eta };
+    const q = new THREE.Quaternion();
+    p.bones.forEach((bone, j) => {
+      q.copy(p.restInverse[j]).multiply(bone.quaternion);
+      if (q.w < 0) q.set(-q.x, -q.y, -q.z, -q.w);
+      out.bones[p.joints[j]] = [q.x, q.y, q.z, q.w];
+    });
+    for (const name of p.expressions) {
+      const index = p.mesh.morphTargetDictionary[name];
+      if (index !== undefined) out.morphs[name] = p.mesh.morphTargetInfluences[index];
+    }
+    return out;
+  }
+
   // ---- window.hackneck ----
   Object.assign(api, {
     header,
     state() {
-      const out = { time: current.time, frame: current.frame, bones: {}, morphs: {}, tau: current.tau, eta: current.eta };
-      const q = new THREE.Quaternion();
-      bones.forEach((bone, j) => {
-        q.copy(restInverse[j]).multiply(bone.quaternion);
-        if (q.w < 0) q.set(-q.x, -q.y, -q.z, -q.w);
-        out.bones[joints[j]] = [q.x, q.y, q.z, q.w];
-      });
-      if (mesh) for (const name of expressions) {
-        const index = mesh.morphTargetDictionary[name];
-        if (index !== undefined) out.morphs[name] = mesh.morphTargetInfluences[index];
-      }
+      const out = main ? puppetState(main) : { time: 0, frame: 0, bones: {}, morphs: {}, tau: 0, eta: 0 };
+      if (companion) out.companion = puppetState(companion);
       return out;
     },
     // The view as the last render drew it: column-major 4x4 matrices (three.js's order) taking the GLB's
@@ -367,7 +397,8 @@
       const canvas = renderer.domElement;
       return { projection: Array.from(camera.projectionMatrix.elements),
                view: Array.from(camera.matrixWorldInverse.elements),
-               model: mesh ? Array.from(mesh.parent.matrixWorld.elements) : null,
+               model: main ? Array.from(main.root.matrixWorld.elements) : null,
+               companionModel: companion ? Array.from(companion.root.matrixWorld.elements) : null,
                width: canvas.clientWidth, height: canvas.clientHeight };
     },
     seek, applyFrame, pushFrame,
@@ -378,9 +409,15 @@
   });
 
   try {
-    new GLTFLoader().parse(decode($('hackneck-glb').textContent.trim()), '', (gltf) => {
+    const load = (id) => new Promise((resolve, reject) =>
+      new GLTFLoader().parse(decode($(id).textContent.trim()), '', resolve, reject));
+    const loads = [load('hackneck-glb')].concat(header.companion ? [load('hackneck-glb-companion')] : []);
+    Promise.all(loads).then((gltfs) => {
       try {
-        setup(gltf);
+        main = makePuppet(header, gltfs[0]);
+        current = main.current;
+        if (gltfs[1]) { companion = makePuppet(header.companion, gltfs[1]); placeSideBySide(); }
+        frame();
         resize();
         if (clip) seek(start); else applyFrame({ time: 0, frame: 0 });
         setPlaying(clip !== null);
