@@ -1,12 +1,16 @@
-"""GLB export time and preview-video speed.
+"""GLB, HTML and FBX export time and preview-video speed.
 
-    python benchmarks/bench_export.py [--rig rig.npz] [--second-rig other.npz] [--seconds 10] [--docs]
+    python benchmarks/bench_export.py [--rig rig.npz] [--second-rig other.npz] [--seconds 10]
+        [--export-seconds 60] [--docs]
 
 On a synthetic 30 fps clip (nods, turns and tilts at every joint, speech-like mouth shapes, a sliding
 larynx): the time to build and write the GLB (and to check it against the rig at every frame), its
 size and morph-target counts; then preview frames per second (pose + render + strip + mp4 encoding,
 through ``scene.preview.write_preview``) at 256x256 and 512x512 for one character and at 256x256 side
 by side (the second character: ``--second-rig``, else the same rig again).  Real time is 30 frames/s.
+Then the time and size of ``viewer.html`` (``scene.viewer``) and ``anim.fbx`` (``scene.fbx``, through
+Blender; skipped, saying so, without it) for a clip of ``--export-seconds`` (the issue's bound: a minute
+in under 30 s each).
 ``--docs`` also writes ``docs/preview_human.png`` (frame 2.0 s of the clip, three-quarter view, 256);
 ``--docs-only`` writes just that.
 """
@@ -29,8 +33,10 @@ from timing import frames_per_second  # noqa: E402
 from base.files import atomic_path  # noqa: E402
 from data.params import AnimationParams, rig_checksum  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
+from scene.fbx import BlenderMissing, export_fbx  # noqa: E402
 from scene.gltf import export_glb  # noqa: E402
 from scene.preview import Panel, preview_image, write_preview  # noqa: E402
+from scene.viewer import build_viewer  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 MOUTH = ("jawOpen", "mouthFunnel", "mouthSmile_L", "mouthSmile_R", "mouthClose")
@@ -64,6 +70,7 @@ def main() -> None:
     parser.add_argument("--second-rig", default=None, help="the side-by-side character (default: --rig again)")
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--preview-frames", type=int, default=60)
+    parser.add_argument("--export-seconds", type=float, default=60.0, help="clip length for HTML and FBX export")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--docs", action="store_true", help="write docs/preview_human.png")
     parser.add_argument("--docs-only", action="store_true", help="write docs/preview_human.png, no timing")
@@ -106,8 +113,24 @@ def main() -> None:
                                           frames, repeats=3, warmup=1)
             print(f"preview {label}: {wall:.1f} frames/s wall ({wall / params.fps:.2f}x real time at "
                   f"{params.fps:g} fps), {cpu:.1f} frames per CPU second")
+    export_timing(rig, demo_clip(rig, args.export_seconds))
     if args.docs:
         write_docs_frame(rig, params)
+
+
+def export_timing(rig: HeadNeckModel, params: AnimationParams) -> None:
+    """Time and size of viewer.html and anim.fbx for ``params``."""
+    with tempfile.TemporaryDirectory() as folder:
+        html = build_viewer(params, rig, Path(folder) / "viewer.html")
+        print(f"HTML viewer, {len(params)} frames: {html.seconds:.1f} s, {html.bytes / 1e6:.1f} MB "
+              f"(GLB {html.glb_bytes / 1e6:.1f} MB)")
+        try:
+            fbx = export_fbx(params, rig, Path(folder) / "anim.fbx")
+        except BlenderMissing as e:
+            print(f"FBX: skipped ({e})")
+            return
+        print(f"FBX through Blender, {len(params)} frames: {fbx.seconds:.1f} s, "
+              f"{fbx.path.stat().st_size / 1e6:.1f} MB")
 
 
 def write_docs_frame(rig: HeadNeckModel, params: AnimationParams) -> None:
