@@ -92,6 +92,7 @@ def test_an_independent_reader_finds_the_skin_the_channels_the_units_and_the_tak
     assert found["axes"] == ["POSITIVE_X", "POSITIVE_Y", "POSITIVE_Z"]     # y up, the face towards +z
     assert found["fps"] == pytest.approx(params.fps)
     assert sorted(found["clusters"]) == sorted(builtin_rig.joint_names)
+    assert found["mesh_visible"] == [True]
     assert set(builtin_rig.expression_names) <= set(found["channels"])
     assert sum(name.startswith("larynx_tau") for name in found["channels"]) >= 2
     assert len(found["stacks"]) == 1, f"one take holding skeleton and shape keys, got {found['stacks']}"

@@ -28,6 +28,8 @@ nodes = [c.bone_node for c in items(scene.skin_clusters)]
 keep.append(nodes)
 out["clusters"] = [n.name for n in nodes]
 meshes = items(scene.meshes)
+instances = items(meshes[0].instances)
+out["mesh_visible"] = [node.visible for node in instances]
 attribute = meshes[0].vertex_position
 keep.append(attribute)
 values = attribute.values
