@@ -93,9 +93,10 @@ def widen_sliders(mesh) -> None:
 def bake_keys_without_the_mesh(scene, mesh) -> None:
     """Spare the exporter's bake the deformed mesh (about 20 ms a frame on HACK's 14k vertices): it steps
     through every frame only to read the bones' transforms and the shape keys' values, but the depsgraph
-    re-evaluates the whole mesh each time.  The mesh leaves the viewport (and so the depsgraph; the file still marks it visible), and a frame
-    handler sets each key's value from its own animation curve, which is what the depsgraph would have done.
-    The mesh itself is written undeformed either way (``use_mesh_modifiers=False``)."""
+    re-evaluates the whole mesh each time.  The mesh leaves the viewport (and so the depsgraph; the file
+    still marks it visible), and a frame handler sets each key's value from its own animation curve, which
+    is what the depsgraph would have done.  The mesh itself is written undeformed either way
+    (``use_mesh_modifiers=False``)."""
     keys = mesh.data.shape_keys
     if keys is None or keys.animation_data is None or keys.animation_data.action is None:
         return
