@@ -29,9 +29,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from base.errors import InputError, require_file
 from base.files import load_npy
+from base.rotations import matrix_to_quaternion, quaternion_to_matrix
 from base.tables import CsvTable
 from base.timebase import resample_uniform, row_name, time_axis
 
@@ -80,6 +82,12 @@ class ExpressionTrack:
     head_ypr: [T,3] head yaw, pitch, roll in radians as recorded (Live Link
               Face ``HeadYaw, HeadPitch, HeadRoll``), or None.
     missing:  HACK names the file did not provide (left at 0).
+    source:   the file it was read from.
+    head_rotation: [T,3,3] head orientations in the rig's world frame (``motion.head2neck``'s ``matrix``
+              input: y up, face towards +z, x to the subject's left), or None; a face tracker's pose
+              (``motion.face``) comes this way rather than as angles.
+    tracked:  [T] bool, the frames where a face tracker found the face (the others are filled in), or
+              None for a capture file.
     """
 
     psi: np.ndarray
@@ -88,15 +96,55 @@ class ExpressionTrack:
     head_ypr: np.ndarray | None = None
     missing: list[str] = field(default_factory=list)
     source: str = ""
+    head_rotation: np.ndarray | None = None
+    tracked: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.psi)
 
     def resampled(self, fps: float) -> ExpressionTrack:
-        """The same recording linearly resampled to a uniform grid at ``fps``."""
+        """The same recording linearly resampled to a uniform grid at ``fps`` (rotations by normalised
+        quaternion interpolation; ``tracked`` belongs to the recorded frames and is not carried over)."""
         time, psi = resample_uniform(self.time, self.psi, fps)
         head = None if self.head_ypr is None else resample_uniform(self.time, self.head_ypr, fps)[1]
-        return ExpressionTrack(psi.astype(np.float32), time, float(fps), head, list(self.missing), self.source)
+        rotation = None if self.head_rotation is None else resample_rotations(self.time, self.head_rotation, fps)
+        return ExpressionTrack(psi.astype(np.float32), time, float(fps), head, list(self.missing), self.source,
+                               rotation)
+
+    def mirrored(self) -> ExpressionTrack:
+        """The recording of a mirrored image (selfie footage) as the subject moved: left and right weights
+        swapped, yaw and roll negated (``head_ypr``), and rotations reflected through the mid-sagittal
+        plane, ``S R S`` with ``S = diag(-1, 1, 1)``, which negates yaw and roll and keeps pitch."""
+        psi = self.psi[:, [EXPRESSION_NAMES.index(mirror_name(name)) for name in EXPRESSION_NAMES]]
+        head = None if self.head_ypr is None else self.head_ypr * np.array([-1.0, 1.0, -1.0], dtype=self.head_ypr.dtype)
+        rotation = None
+        if self.head_rotation is not None:
+            flip = np.diag([-1.0, 1.0, 1.0]).astype(self.head_rotation.dtype)
+            rotation = flip @ self.head_rotation @ flip
+        missing = sorted({mirror_name(name) for name in self.missing}, key=EXPRESSION_NAMES.index)
+        return ExpressionTrack(psi, self.time, self.fps, head, missing, self.source, rotation, self.tracked)
+
+
+def mirror_name(hack_name: str) -> str:
+    """The HACK expression of the other side (``eyeBlink_L`` <-> ``eyeBlink_R``, ``jawLeft`` <-> ``jawRight``,
+    ``mouthLeft`` <-> ``mouthRight``); a name without a side is its own mirror."""
+    swaps = {"_L": "_R", "_R": "_L", "Left": "Right", "Right": "Left"}
+    for ending, other in swaps.items():
+        if hack_name.endswith(ending):
+            return hack_name[: -len(ending)] + other
+    return hack_name
+
+
+def resample_rotations(time: np.ndarray, rotations: np.ndarray, fps: float) -> np.ndarray:
+    """Rotations [T,3,3] at ``time`` resampled on :func:`resample_uniform`'s grid at ``fps``: quaternions
+    made continuous (each on the side of the previous one), interpolated linearly and normalised."""
+    quaternions = matrix_to_quaternion(torch.as_tensor(np.asarray(rotations, dtype=np.float64))).numpy()
+    signs = np.sign(np.einsum("ti,ti->t", quaternions[1:], quaternions[:-1]))
+    quaternions[1:] *= np.cumprod(np.where(signs == 0, 1.0, signs))[:, None]
+    _, resampled = resample_uniform(time, quaternions, fps)
+    resampled /= np.linalg.norm(resampled, axis=1, keepdims=True)
+    matrices = quaternion_to_matrix(torch.as_tensor(resampled)).numpy()
+    return matrices.astype(np.asarray(rotations).dtype)
 
 
 def check_weights(psi: np.ndarray, path: Path, names, lines: list[int] | None = None) -> None:

@@ -11,7 +11,11 @@ exporters (``scene.gltf``, ``scene.preview``) read it.  Arrays (strings as 0-d u
 - ``joint_names [8]``, ``expression_names [55]``;
 - ``rig``: ``builtin``, a rig file's path, or a character (``character:giraffe``); ``rig_checksum``: the
   sha256 of the rig's arrays (:func:`rig_checksum`), so a reader can check it poses the right rig;
-- ``producers``: JSON of what made the tracks (``{"larynx": ..., "head2neck": ..., "tool": ...}``).
+- ``producers``: JSON of what made the tracks (``{"larynx": ..., "head2neck": ..., "tool": ...}``);
+- optional, only in files made with audio (``infer.py audio=``; ``motion.voice``): ``f0 [T]`` the voice's
+  fundamental frequency in Hz (0 = unvoiced) and ``tau_voice [T]`` the voice term, the part of ``tau``
+  that pitch moves (UV units, zero-mean over the take; already included in ``tau``).  Files without them
+  load with both None; a reader that does not know them ignores them.
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ from data.assets import RigData
 
 ARRAY_KEYS = ("time", "fps", "psi", "tau", "eta", "theta", "head_rotation")
 TEXT_KEYS = ("rig", "rig_checksum", "producers")
+OPTIONAL_KEYS = ("f0", "tau_voice")  # [T] float32 each; only in files made with audio
 
 
 def rig_checksum(rig: RigData) -> str:
@@ -48,7 +53,8 @@ def rig_checksum(rig: RigData) -> str:
 class AnimationParams:
     """Per-frame rig inputs at ``fps``.
 
-    time [T] s, psi [T,E], tau [T], eta [T], theta [T,J,3] (bone frames of ``rig``), head_rotation [T,3,3].
+    time [T] s, psi [T,E], tau [T], eta [T], theta [T,J,3] (bone frames of ``rig``), head_rotation [T,3,3];
+    optional f0 [T] Hz (0 = unvoiced) and tau_voice [T] (the voice's share of tau), None when absent.
     """
 
     time: np.ndarray
@@ -63,6 +69,8 @@ class AnimationParams:
     rig: str = "builtin"
     rig_checksum: str = ""
     producers: dict = field(default_factory=dict)
+    f0: np.ndarray | None = None
+    tau_voice: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.time = np.asarray(self.time, dtype=np.float64)
@@ -74,9 +82,12 @@ class AnimationParams:
         self.head_rotation = np.asarray(self.head_rotation, dtype=np.float32)
         self.joint_names = [str(n) for n in self.joint_names]
         self.expression_names = [str(n) for n in self.expression_names]
+        present = [name for name in OPTIONAL_KEYS if getattr(self, name) is not None]
+        for name in present:
+            setattr(self, name, np.asarray(getattr(self, name), dtype=np.float32))
         t, j, e = len(self.time), len(self.joint_names), len(self.expression_names)
         expected = {"time": (t,), "psi": (t, e), "tau": (t,), "eta": (t,), "theta": (t, j, 3),
-                    "head_rotation": (t, 3, 3)}
+                    "head_rotation": (t, 3, 3), **{name: (t,) for name in present}}
         for name, shape in expected.items():
             if getattr(self, name).shape != shape:
                 raise ValueError(f"{name} has shape {getattr(self, name).shape}, expected {list(shape)}")
@@ -86,19 +97,22 @@ class AnimationParams:
             raise ValueError(f"fps must be positive, got {self.fps}")
         if t > 1 and (np.diff(self.time) <= 0).any():
             raise ValueError(f"time must increase, but frame {int(np.argmax(np.diff(self.time) <= 0)) + 1} does not")
-        for name in ("time", "psi", "tau", "eta", "theta", "head_rotation"):
+        for name in ("time", "psi", "tau", "eta", "theta", "head_rotation", *present):
             if not np.isfinite(getattr(self, name)).all():
                 bad = np.argwhere(~np.isfinite(getattr(self, name)))[0]
                 raise ValueError(f"{name} is not finite at index {tuple(bad.tolist())}")
+        if self.f0 is not None and (self.f0 < 0).any():
+            raise ValueError(f"f0 is negative at frame {int(np.argmax(self.f0 < 0))}; expected Hz, 0 = unvoiced")
 
     def __len__(self) -> int:
         return len(self.time)
 
 
 def save_params(path: str | os.PathLike, params: AnimationParams) -> None:
-    """Write ``params`` to ``path`` (``.npz``) atomically."""
-    save_npz(path, compressed=True, time=params.time, fps=np.float64(params.fps), psi=params.psi, tau=params.tau,
-             eta=params.eta, theta=params.theta, head_rotation=params.head_rotation,
+    """Write ``params`` to ``path`` (``.npz``) atomically; ``f0`` / ``tau_voice`` only when present."""
+    optional = {name: getattr(params, name) for name in OPTIONAL_KEYS if getattr(params, name) is not None}
+    save_npz(path, compressed=True, **optional, time=params.time, fps=np.float64(params.fps), psi=params.psi,
+             tau=params.tau, eta=params.eta, theta=params.theta, head_rotation=params.head_rotation,
              joint_names=np.array(params.joint_names), expression_names=np.array(params.expression_names),
              rig=np.array(params.rig), rig_checksum=np.array(params.rig_checksum),
              producers=np.array(json.dumps(params.producers, sort_keys=True)))
@@ -127,7 +141,7 @@ def load_params(path: str | os.PathLike) -> AnimationParams:
             theta=stored["theta"], head_rotation=stored["head_rotation"],
             joint_names=list(stored["joint_names"]), expression_names=list(stored["expression_names"]),
             rig=str(stored.get("rig", "builtin")), rig_checksum=str(stored.get("rig_checksum", "")),
-            producers=producers)
+            producers=producers, **{name: stored[name] for name in OPTIONAL_KEYS if name in stored})
     except (ValueError, TypeError) as e:
         raise InputError(f"{path}: {e}") from None
 

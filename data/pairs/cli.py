@@ -5,8 +5,8 @@ A *pair file* is an ``.npz`` holding one recording:
 - ``tau`` [T]: larynx slide in UV units of the larynx map, + = up the neck (``data.tau_track``);
 - ``fps``: frames per second of both (a scalar);
 - optional ``subject`` (a string naming the person), ``take`` (a string naming the recording the
-  file was cut from), ``eta`` (larynx size, scalar) and ``time`` [T] (seconds on the expression
-  recording's clock, informative only).
+  file was cut from), ``eta`` (larynx size, scalar), ``time`` [T] (seconds on the expression
+  recording's clock, informative only) and ``f0`` [T] (the voice's F0 in Hz, 0 = unvoiced).
 
 A *pairs folder* holds many such files; :func:`split_by_take` splits it into training and validation
 **by take**, so clips cut from one recording are never on both sides.  A file without ``take`` belongs
@@ -27,6 +27,9 @@ capture needs ``offset=0.25``); ``fps`` is the pair's (output) rate, by default 
 recording's.  The inputs' own rates, where the files carry none, are ``track_fps`` (a ``.npy`` track or
 a CSV without ``time``/``fps`` columns), ``expressions_fps`` (header-less or ``.npy`` expressions) and
 ``timecode_fps`` (a Live Link Face timecode too short to tell its rate).
+
+``audio=take.wav|take.mov`` adds the take's voice F0 per frame (``f0``, Hz, 0 = unvoiced; ``data.audio``),
+the audio starting with the expression recording: pairs for ``python -m motion.voice mode=fit``.
 """
 from __future__ import annotations
 
@@ -34,8 +37,9 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from data.audio import read_audio
 from data.expressions import read_expressions
-from data.pairs.align import align_pair
+from data.pairs.align import align_pair, f0_on_pair
 from data.pairs.files import LarynxSequence, save_pair
 from data.tau_track import read_tau_track
 
@@ -47,6 +51,8 @@ def run(cfg: DictConfig) -> LarynxSequence:
                                    fps_key="expressions_fps")
     pair, time = align_pair(track, expressions, cfg.fps, float(cfg.offset),
                             None if cfg.subject is None else str(cfg.subject), Path(cfg.out).stem)
+    if cfg.get("audio"):
+        pair.f0 = f0_on_pair(read_audio(cfg.audio), expressions, time)
     save_pair(cfg.out, pair, time)
     print(f"{cfg.out}: {len(pair)} frames at {pair.fps:g} fps ({time[0]:.3f}-{time[-1]:.3f} s of {cfg.expressions})")
     return pair

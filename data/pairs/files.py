@@ -22,7 +22,8 @@ class LarynxSequence:
     """One recording: psi [T,55] float32, tau [T] float32 (UV units), both at ``fps``.
 
     ``subject`` names the person (None if unknown); ``eta`` is the larynx size if known; ``take`` names
-    the recording the sequence was cut from (None: the sequence is a recording of its own, ``name``).
+    the recording the sequence was cut from (None: the sequence is a recording of its own, ``name``);
+    ``f0`` [T] float32 is the voice's fundamental frequency in Hz (0 = unvoiced), None if not recorded.
     """
 
     psi: np.ndarray
@@ -32,6 +33,7 @@ class LarynxSequence:
     name: str
     eta: float | None = None
     take: str | None = None
+    f0: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.take is None:
@@ -47,8 +49,12 @@ class LarynxSequence:
         time = np.arange(len(self)) / self.fps
         _, psi = resample_uniform(time, self.psi, fps)
         _, tau = resample_uniform(time, self.tau, fps)
+        f0 = None
+        if self.f0 is not None:  # nearest frame: a blend of voiced and unvoiced (0) frames is no F0
+            nearest = np.clip(np.rint(np.arange(len(tau)) / fps * self.fps).astype(int), 0, len(self) - 1)
+            f0 = self.f0[nearest]
         return LarynxSequence(psi.astype(np.float32), tau.astype(np.float32), float(fps), self.subject, self.name,
-                              self.eta, self.take)
+                              self.eta, self.take, f0)
 
 
 # --------------------------------------------------------------------------- pair files
@@ -111,7 +117,18 @@ def load_pair(path: str | os.PathLike) -> LarynxSequence:
     subject = _name(data, "subject", path) if "subject" in data else None
     take = (_name(data, "take", path) if "take" in data else None) or take_from_name(path.stem)
     eta = _scalar(data, "eta", path) if "eta" in data else None
-    return LarynxSequence(psi.astype(np.float32), tau.astype(np.float32), fps, subject, path.stem, eta, take)
+    f0 = None
+    if "f0" in data:
+        f0 = np.asarray(data["f0"])
+        if f0.shape != tau.shape or not np.issubdtype(f0.dtype, np.number):
+            raise InputError(f"{path}: 'f0' has shape {f0.shape} ({f0.dtype}), expected F0 in Hz per frame "
+                             f"[{len(tau)}]")
+        bad = ~np.isfinite(f0) | (f0 < 0)
+        if bad.any():
+            raise InputError(f"{path}: 'f0' is {f0[bad][0]} at frame {int(np.argmax(bad))}; expected Hz >= 0 "
+                             f"(0 = unvoiced)")
+        f0 = f0.astype(np.float32)
+    return LarynxSequence(psi.astype(np.float32), tau.astype(np.float32), fps, subject, path.stem, eta, take, f0)
 
 
 def save_pair(path: str | os.PathLike, sequence: LarynxSequence, time: np.ndarray | None = None) -> None:
@@ -124,6 +141,8 @@ def save_pair(path: str | os.PathLike, sequence: LarynxSequence, time: np.ndarra
         arrays["eta"] = np.float64(sequence.eta)
     if sequence.take is not None:
         arrays["take"] = np.str_(sequence.take)
+    if sequence.f0 is not None:
+        arrays["f0"] = np.asarray(sequence.f0, dtype=np.float32)
     if time is not None:
         arrays["time"] = np.asarray(time, dtype=np.float64)
     save_npz(path, **arrays)

@@ -4,6 +4,8 @@
         [checkpoint=default|none|path] [head2neck=default|none|path] [rig=hack_rig.npz] \\
         [viewer=true] [viewer_port=8765] [viewer_host=127.0.0.1]
     python -m motion.live.send take=take.csv [host=127.0.0.1] [port=11111] [speed=1.0]   # no phone at hand
+    python -m motion.live camera=0 [mirror=true] [viewer=true]     # a webcam through the face stage (".[video]")
+    python -m motion.live video=clip.mp4 [realtime=false]          # a face video at its own rate
 
 Receives Live Link Face "ARKit" mode datagrams (packet version 6, ``motion.live.packet``) on UDP ``port``;
 in the app: Settings -> Live Link -> add a target with this machine's IP address and port 11111.  Every
@@ -36,6 +38,7 @@ from base.cli import to_dataclass
 from base.errors import InputError
 from base.files import atomic_folder, require_new_folder
 from motion.live.config import LiveConfig
+from motion.live.face_feed import FaceFeed, write_feed
 from motion.live.outputs import write_session
 from motion.live.receiver import LiveReceiver
 from motion.live.stream import StreamOptions
@@ -67,6 +70,34 @@ def finish(receiver: LiveReceiver, out_dir: Path, eta: float) -> dict:
                              {"datagrams": receiver.received})
 
 
+def run_face(config: LiveConfig, models: Models, out_dir: Path, viewer, on_frame) -> dict:
+    """A webcam or a video through the face stage (``motion.live.face_feed``) instead of phones."""
+    stop = {"signal": None}
+
+    def on_signal(number, _frame):
+        stop["signal"] = signal.Signals(number).name
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        feed = FaceFeed(models, config.camera, config.video, config.face_model, config.mirror, config.realtime,
+                        config.eta, config.recenter, on_frame=on_frame)
+        until = f"for {config.duration:g} s" if config.duration else "until the end or Ctrl-C"
+        print(f"live: {feed.device} at {feed.rate[0]} fps through the face stage {until}; writing {out_dir} at the end")
+        feed.run(config.duration, lambda: stop["signal"] is not None, config.status_seconds)
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+        if viewer is not None:
+            viewer.close()
+    print(f"live: stopped ({stop['signal'] or 'end'}); {feed.received} frames read, {feed.produced} frames out, "
+          f"no face in {feed.rejected['no_face']}")
+    summary = write_feed(feed, out_dir, config.eta)
+    print(json.dumps({"out": str(out_dir), "rejected": summary["rejected"],
+                      "subjects": {k: {"frames": v["frames"], "missing_frames": v["missing_frames"],
+                                       "latency_ms": v["latency_ms"]} for k, v in summary["subjects"].items()}}))
+    return summary
+
+
 def run(cfg) -> dict:
     config: LiveConfig = to_dataclass(cfg, LiveConfig, where="configs/live.yaml")
     out_dir = Path(config.out_dir) if config.out_dir else default_out_dir()
@@ -81,6 +112,8 @@ def run(cfg) -> dict:
                              f"({e.strerror or e})") from None
         vhost, vport = viewer.address
         print(f"live: live view on http://{vhost}:{vport}/", flush=True)
+    if config.camera is not None or config.video is not None:
+        return run_face(config, models, out_dir, viewer, on_frame)
     try:
         receiver = LiveReceiver(models, stream_options(config), config.host, config.port, config.max_phones,
                                 config.absurd_weight, on_frame=on_frame)

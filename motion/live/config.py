@@ -35,6 +35,12 @@ class LiveConfig:
     viewer: bool = False               # serve the live view: http://viewer_host:viewer_port/ (WebSocket /ws)
     viewer_host: str = "127.0.0.1"     # the live view's address (0.0.0.0: other machines may watch)
     viewer_port: int = 8765            # 0: any free port (printed)
+    # A face video instead of a phone (motion/live/face_feed.py; pip install ".[video]"):
+    camera: int | None = None          # a webcam's index (0: the first); null: listen for phones
+    video: str | None = None           # a video file, played at its own rate (realtime=false: as fast as it decodes)
+    realtime: bool = True
+    face_model: str | None = None      # a face_landmarker.task; null: the installed one
+    mirror: bool = False               # selfie-mirrored frames: left/right weights swapped, yaw and roll negated
 
     def __post_init__(self) -> None:
         if self.head_units not in UNITS:
@@ -48,6 +54,8 @@ class LiveConfig:
             raise ValueError(f"viewer_port={self.viewer_port}: expected 0..65535 (0: any free port)")
         if self.duration is not None and self.duration <= 0:
             raise ValueError(f"duration={self.duration}: expected seconds > 0 (or null: until stopped)")
+        if self.camera is not None and self.video is not None:
+            raise ValueError(f"camera={self.camera} and video={self.video}: give one source")
         if self.max_phones < 1 or self.max_gap_seconds <= 0 or self.absurd_weight <= 0 or self.tick_ms <= 0:
             raise ValueError("max_phones, max_gap_seconds, absurd_weight and tick_ms must be positive")
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -14,21 +15,30 @@ from data.params import AnimationParams, rig_checksum
 from models.head2neck import predict_theta
 from models.larynx import predict_tau
 from models.pretrained import pretrained_path
+from motion.face import read_face_video
 from motion.head2neck import head_rotations_from_ypr, recentered
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models
 from motion.swallow import insert_swallows, read_template
+from motion.track.sources import VIDEO_SUFFIXES
+from motion.voice import load_voice, voice_on_frames
 
 # Expressions no ARKit capture has (ICT's cheekRaiser_L/R): their absence is a note, not an error.
 NEVER_IN_ARKIT = tuple(name for name in EXPRESSION_NAMES if arkit_name(name) is None)
 
 
-def read_take(cfg: InferConfig, path: str | None) -> ExpressionTrack:
+def read_take(cfg: InferConfig, path: str | None, announce=print) -> ExpressionTrack:
     """The recording at ``path`` (or the demo take), refusing one that lacks ARKit expression columns
-    unless ``allow_missing``."""
+    unless ``allow_missing``.  A video (``VIDEO_SUFFIXES``) goes through the face stage (``motion.face``:
+    ``face_model``, ``face_smoothing``, ``face_max_gap``); ``mirror`` swaps left and right (selfie footage)."""
     if path is None:
         return demo_take()
-    track = read_expressions(path, fps=cfg.fps, timecode_fps=cfg.timecode_fps)
+    if Path(path).suffix.lower() in VIDEO_SUFFIXES:
+        track = read_face_video(path, cfg.face_model, cfg.face_smoothing, cfg.face_max_gap, announce=announce)
+    else:
+        track = read_expressions(path, fps=cfg.fps, timecode_fps=cfg.timecode_fps)
+    if cfg.mirror:
+        track = track.mirrored()
     lacking = [name for name in track.missing if name not in NEVER_IN_ARKIT]
     if lacking and not cfg.allow_missing:
         columns = sorted({arkit_name(name) or name for name in lacking})
@@ -43,6 +53,14 @@ def head_theta(cfg: InferConfig, models: Models, track: ExpressionTrack, announc
     theta = np.zeros((len(track), models.rig.num_joints, 3), dtype=np.float32)
     if models.neck is None:
         return theta
+    if track.head_rotation is not None:  # a face video's pose: rotation matrices in the rig's frame
+        signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
+        if signs != (1.0, 1.0, 1.0):
+            raise InputError(f"{track.source}: yaw_sign/pitch_sign/roll_sign={signs} apply to recorded yaw, pitch "
+                             f"and roll; a video's head pose is already in the rig's frame (mirror=true for "
+                             f"selfie-mirrored footage)")
+        head = torch.as_tensor(track.head_rotation, dtype=torch.float32)
+        return predict_theta(models.neck, models.rig, recentered(head) if cfg.recenter else head).numpy()
     if track.head_ypr is None:
         announce(f"{track.source}: no head rotation recorded (HeadYaw/HeadPitch/HeadRoll absent or zero); "
                  f"the neck rests")
@@ -53,8 +71,13 @@ def head_theta(cfg: InferConfig, models: Models, track: ExpressionTrack, announc
     return predict_theta(models.neck, models.rig, recentered(head) if cfg.recenter else head).numpy()
 
 
-def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=print) -> tuple[AnimationParams, dict]:
-    """The per-frame rig inputs for one take, and the seconds each stage took."""
+def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=print,
+            audio: str | None = None) -> tuple[AnimationParams, dict]:
+    """The per-frame rig inputs for one take, and the seconds each stage took.
+
+    With ``audio`` (the take's sound, aligned with the capture at their start) the voice term
+    (``motion.voice``: larynx height from F0, zero-mean over the take) is added to the larynx model's tau,
+    before swallows are inserted; without it nothing changes."""
     seconds = {}
     started = time.perf_counter()
     fps = models.larynx.fps if models.larynx is not None else float(cfg.out_fps or track.fps)
@@ -66,6 +89,18 @@ def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=p
     else:
         tau = np.zeros(len(uniform))
     seconds["larynx"] = time.perf_counter() - started
+    f0 = tau_voice = None
+    voice_producers = {}
+    if audio is not None:
+        started = time.perf_counter()
+        frame_time = uniform.time - uniform.time[0]
+        capture_seconds = float(track.time[-1] - track.time[0]) + 1.0 / track.fps
+        f0, tau_voice, summary = voice_on_frames(audio, frame_time, str(track.source), capture_seconds,
+                                                 load_voice(cfg.voice), cfg.audio_tolerance, announce)
+        if tau_voice is not None:
+            tau = tau + tau_voice
+        voice_producers = {"audio": str(audio), "voice": str(cfg.voice), **summary}
+        seconds["voice"] = time.perf_counter() - started
     onsets = [float(t) for t in as_list(cfg.swallow_at)]
     if track.source == DEMO_SOURCE and not onsets:
         onsets = [SWALLOW_ONSET]
@@ -88,5 +123,6 @@ def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=p
         eta=np.full(len(uniform), float(cfg.eta)), theta=theta, head_rotation=head,
         joint_names=models.rig.joint_names, expression_names=models.rig.expression_names,
         rig=models.rig_name, rig_checksum=rig_checksum(models.rig.rig),
-        producers={**models.producers, "swallows": onsets, "source": str(track.source)})
+        producers={**models.producers, "swallows": onsets, "source": str(track.source), **voice_producers},
+        f0=f0, tau_voice=tau_voice)
     return params, seconds

@@ -39,6 +39,16 @@ class InferConfig:
     pitch_sign: float = 1.0
     roll_sign: float = 1.0
     recenter: bool = False
+    # face video (expressions=clip.mp4; motion/face/__init__.py): MediaPipe FaceLandmarker
+    face_model: str | None = None      # a face_landmarker.task; null: the installed one (pip install ".[video]")
+    mirror: bool = False               # selfie-mirrored footage: left/right weights swapped, yaw and roll negated
+    face_smoothing: bool = False       # causal One Euro filter on weights and pose (benchmarks/README.md, Face video)
+    face_max_gap: float = 0.5          # s: a face lost for longer is reported (shorter gaps silently interpolated)
+    # voice -> larynx height (motion.voice; docs/voice.md)
+    audio: str | None = None           # null: the audio beside the take (same stem: .wav/.mov/.mp4...) if any |
+    #                                    none: no voice term | a file (one take)
+    voice: str = "default"             # default (published figures) | a voice.json from python -m motion.voice
+    audio_tolerance: float = 1.0       # s: audio and capture durations may differ by this much (aligned at start)
     # rig and outputs
     rig: str | None = None             # rig file from python -m data.assets; null = the built-in rig
     character: str = "human"           # human | giraffe (built from the rig) | a character file (.npz)
@@ -51,6 +61,8 @@ class InferConfig:
     threads: int = 1                   # torch threads per process (per-frame decoding runs on one)
 
     def __post_init__(self) -> None:
+        if not self.audio_tolerance >= 0:
+            raise ValueError(f"audio_tolerance={self.audio_tolerance}: expected seconds >= 0")
         if self.mesh_format not in MESH_FORMATS:
             raise ValueError(f"mesh_format={self.mesh_format}: expected one of {', '.join(MESH_FORMATS)}")
         if self.fbx_units not in FBX_UNITS:

@@ -14,16 +14,23 @@ from base.files import require_new_folder, write_csv
 from base.progress import progress_bar
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models, load_models
-from motion.pipeline.take import run_take
+from motion.pipeline.take import run_take, take_audio
 from motion.swallow import PlaybackConfig
+from motion.track.sources import VIDEO_SUFFIXES
 
-TAKE_SUFFIXES = (".csv", ".npy")
+CAPTURE_SUFFIXES = (".csv", ".npy")
+TAKE_SUFFIXES = CAPTURE_SUFFIXES + VIDEO_SUFFIXES  # videos go through the face stage (motion.face)
 
 
 def takes_in(folder: Path) -> list[Path]:
-    takes = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in TAKE_SUFFIXES)
+    """The takes of ``folder``: captures (.csv, .npy) and face videos, by name; a video with the stem of a
+    capture is that capture's sound (``take_audio``), not a take of its own."""
+    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in TAKE_SUFFIXES]
+    capture_stems = {p.stem for p in files if p.suffix.lower() in CAPTURE_SUFFIXES}
+    takes = sorted(p for p in files if p.suffix.lower() in CAPTURE_SUFFIXES or p.stem not in capture_stems)
     if not takes:
-        raise InputError(f"expressions={folder}: a folder without .csv or .npy takes")
+        raise InputError(f"expressions={folder}: a folder without takes (.csv, .npy, or face videos "
+                         f"{', '.join(VIDEO_SUFFIXES)})")
     return takes
 
 
@@ -50,6 +57,7 @@ def _worker_take(take: str, out_dir: str) -> dict:
 
 def run_folder(cfg: InferConfig, folder: Path, out_dir: Path) -> list[dict]:
     """Every take of ``folder`` into ``out_dir/<take>/``; failures reported, the others go on."""
+    take_audio(cfg, None, in_folder=True)  # audio=<one file> is refused for a folder (each take's is beside it)
     takes = takes_in(folder)
     require_new_folder(out_dir)
     targets = [out_dir / take.stem for take in takes]

@@ -23,8 +23,12 @@ from scene.viewer import build_viewer
 
 
 def write_params_csv(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
-    """One row a frame: time, tau, eta, the 55 weights, and each joint's bone-frame axis-angle (rad)."""
+    """One row a frame: time, tau, eta, (with audio: f0 in Hz, 0 = unvoiced, and tau_voice, the voice's share
+    of tau), the 55 weights, and each joint's bone-frame axis-angle (rad)."""
     columns = {"frame": np.arange(len(params)), "time": params.time, "tau": params.tau, "eta": params.eta}
+    for name in ("f0", "tau_voice"):
+        if getattr(params, name) is not None:
+            columns[name] = getattr(params, name)
     columns.update({name: params.psi[:, k] for k, name in enumerate(params.expression_names)})
     for j, joint in enumerate(params.joint_names):
         for a, axis in enumerate("xyz"):
@@ -33,8 +37,10 @@ def write_params_csv(path: Path, params: AnimationParams, rig: HeadNeckModel) ->
 
 
 def plot_take(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
-    """tau and eta over time with the swallow onsets, and the joints' anatomical angles over time."""
-    fig, axes = figure(nrows=4, figsize=(10, 9), sharex=True)
+    """tau and eta over time with the swallow onsets, the voice (F0 and its term) when there is one, and the
+    joints' anatomical angles over time."""
+    voice = params.f0 is not None
+    fig, axes = figure(nrows=5 if voice else 4, figsize=(10, 11 if voice else 9), sharex=True)
     axes[0].plot(params.time, params.tau, color="tab:blue", label="tau (UV units, + = up)")
     axes[0].set_ylabel("tau")
     twin = axes[0].twinx()
@@ -43,6 +49,9 @@ def plot_take(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
     for onset in params.producers.get("swallows", []):
         axes[0].axvline(onset, color="tab:red", alpha=0.5)
     axes[0].set_title(f"{params.producers.get('source', '')}: larynx (red: swallows)")
+    if voice:
+        plot_voice(axes[1], params)
+        axes = [axes[0], *axes[2:]]
     degrees = anatomical_degrees(rig, params.theta)
     for a, label in enumerate(("flexion (+) / extension", "axial rotation (+ = left)", "lateral bend (+ = right)")):
         for j, joint in enumerate(params.joint_names):
@@ -51,6 +60,17 @@ def plot_take(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
     axes[1].legend(ncol=8, fontsize=7, loc="upper right")
     axes[-1].set_xlabel("time (s)")
     save_figure(fig, path)
+
+
+def plot_voice(axis, params: AnimationParams) -> None:
+    """F0 (Hz, voiced frames only) and the voice term (tau units) on one panel."""
+    axis.plot(params.time, np.where(params.f0 > 0, params.f0, np.nan), color="tab:purple", label="F0")
+    axis.set_ylabel("F0 (Hz)")
+    if params.tau_voice is not None:
+        twin = axis.twinx()
+        twin.plot(params.time, params.tau_voice, color="tab:orange", label="tau_voice")
+        twin.set_ylabel("voice term (tau)")
+    axis.set_title(f"voice: {params.producers.get('audio', '')} (purple: F0; orange: its share of tau)", fontsize=9)
 
 
 @torch.no_grad()

@@ -107,4 +107,5 @@ def retarget_params(params: AnimationParams, source: HeadNeckModel, target: Head
     return AnimationParams(time=params.time, fps=params.fps, psi=params.psi[:, order], tau=params.tau, eta=params.eta,
                            theta=theta.numpy(), head_rotation=head, joint_names=target.joint_names,
                            expression_names=target.expression_names, rig=rig_label,
-                           rig_checksum=rig_checksum(target.rig), producers=producers)
+                           rig_checksum=rig_checksum(target.rig), producers=producers, f0=params.f0,
+                           tau_voice=params.tau_voice)
