@@ -142,20 +142,27 @@ def test_infer_and_retarget_export_html(builtin_rig, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def page(viewer):
-    """The viewer open in headless Chromium (software WebGL), loaded, paused."""
-    _, path = viewer
+def browser():
+    """One headless Chromium (software WebGL) for the module: playwright's sync API runs one at a time."""
     with headless_chromium() as browser:
-        page = browser.new_page(viewport={"width": 640, "height": 640})
-        errors = []
-        page.on("pageerror", lambda error: errors.append(str(error)))
-        page.route(re.compile(r"^https?://"), lambda route: (errors.append(route.request.url), route.abort()))
-        page.goto(path.as_uri())
-        page.wait_for_function("window.hackneck && (window.hackneck.ready || window.hackneck.error)", timeout=30_000)
-        assert page.evaluate("window.hackneck.error") is None
-        page.evaluate("window.hackneck.pause()")
-        page.errors = errors
-        yield page
+        yield browser
+
+
+@pytest.fixture(scope="module")
+def page(viewer, browser):
+    """The viewer open in headless Chromium, loaded, paused."""
+    _, path = viewer
+    page = browser.new_page(viewport={"width": 640, "height": 640})
+    errors = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.route(re.compile(r"^https?://"), lambda route: (errors.append(route.request.url), route.abort()))
+    page.goto(path.as_uri())
+    page.wait_for_function("window.hackneck && (window.hackneck.ready || window.hackneck.error)", timeout=30_000)
+    assert page.evaluate("window.hackneck.error") is None
+    page.evaluate("window.hackneck.pause()")
+    page.errors = errors
+    yield page
+    page.close()
 
 
 def check_state(state: dict, params: AnimationParams, frame: int) -> None:
@@ -266,7 +273,7 @@ def test_browser_silhouette_is_the_rigs_projected_with_the_pages_camera(page, vi
 
 
 @pytest.fixture(scope="module")
-def pair_page(builtin_rig, tmp_path_factory):
+def pair_page(builtin_rig, tmp_path_factory, browser):
     """The viewer of a giraffe's clip with the human it was retargeted from beside it, open in Chromium."""
     from motion.retarget import default_gains, retarget_params
     from scene.characters import load_character
@@ -276,13 +283,13 @@ def pair_page(builtin_rig, tmp_path_factory):
     params = retarget_params(human, builtin_rig, giraffe, "character:giraffe", default_gains(giraffe))
     path = tmp_path_factory.mktemp("pair") / "viewer.html"
     build_viewer(params, giraffe, path, companion=(human, builtin_rig))
-    with headless_chromium() as browser:
-        page = browser.new_page(viewport={"width": 900, "height": 640})
-        page.goto(path.as_uri())
-        page.wait_for_function("window.hackneck && (window.hackneck.ready || window.hackneck.error)", timeout=30_000)
-        assert page.evaluate("window.hackneck.error") is None
-        page.evaluate("window.hackneck.pause()")
-        yield page, params, giraffe, human
+    page = browser.new_page(viewport={"width": 900, "height": 640})
+    page.goto(path.as_uri())
+    page.wait_for_function("window.hackneck && (window.hackneck.ready || window.hackneck.error)", timeout=30_000)
+    assert page.evaluate("window.hackneck.error") is None
+    page.evaluate("window.hackneck.pause()")
+    yield page, params, giraffe, human
+    page.close()
 
 
 def test_browser_plays_the_giraffe_beside_the_human_on_one_clock(pair_page, builtin_rig):
