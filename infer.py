@@ -30,8 +30,8 @@ and the exporters read), ``params.csv`` (a row per frame), ``plot.png`` (tau and
 the joints' anatomical angles), ``meshes/frame_00000.ply ...`` with ``meshes=true``, ``anim.glb``
 (``scene.gltf``: Blender, Unity, three.js) and ``preview.mp4`` (``scene.preview``) with
 ``export=[glb,mp4]``, ``viewer.html`` (``scene.viewer``) and ``anim.fbx`` (``scene.fbx``, through Blender)
-with ``export=[html,fbx]``, ``face_frames.csv`` for a video.  A folder of takes gives one subfolder per take, a summary table (``summary.csv``),
-and goes on past a take that fails, naming its reason.
+with ``export=[html,fbx]``, ``face_frames.csv`` for a video.  A folder of takes gives one subfolder per
+take, a summary table (``summary.csv``), and goes on past a take that fails, naming its reason.
 """
 from __future__ import annotations
 
