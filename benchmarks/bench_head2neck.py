@@ -2,7 +2,7 @@
 shifted prior, and optionally a default training run.
 
     python benchmarks/bench_head2neck.py [--checkpoint last.pt] [--frames 65536] [--threads 2] [--rig hack_rig.npz]
-                                         [--accuracy] [--train]
+                                         [--accuracy] [--train] [--styles] [--calibration]
 
 Inference: ``models.head2neck.predict_theta`` (the 2x512 MLP, then the exact correction with its at most three
 Gauss-Newton steps) on head orientations of the in-vivo prior, in frames per second (target >= 50,000 with 2
@@ -16,6 +16,13 @@ the correction, and the uniform, range-of-motion and in-vivo splits (each with t
 - sequences of a prior shifted from the training one (the shifted-prior test's settings).
 ``--train`` runs ``python train.py task=head2neck`` with the default configuration (built-in rig) in a
 temporary directory and prints its wall time and evaluation.  Both 1 and ``--threads`` threads are timed.
+``--styles`` (issue 46, HACK's own motion): the per-level shares (axial,
+flexion, extension, lateral) of the prior's two styles, ``data.prior.style=invivo|hack``, side by side, and the
+axial shares of the shipped ``default`` and ``hack`` models on a head turn; then the mean joint error of both
+shipped models, the uniform and the in-vivo split on a HACK-style stand-in (``tests/hack_standin.py``: the
+heads of the stand-in recording, solved per frame with E_sim, E_rot and half the axial rotation at C1-C2).
+``--calibration``: trains ``data=theta_seq`` on the first N frames of a HACK-style stand-in recording
+(seeds 0-2 of the stand-in, 1500 frames) and scores each run on a held-out session (seed 3).
 On a CPU shared with other jobs, OpenMP's busy-waiting threads slow multi-threaded torch down several times;
 this script sets ``OMP_WAIT_POLICY=PASSIVE`` (unless already set) before importing torch, which removes that.
 """
@@ -30,6 +37,7 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,7 +46,8 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from timing import frames_per_second  # noqa: E402
 
-from data.cervical_prior import PriorConfig, head_rotations, sample_sequences  # noqa: E402
+from base.rotations import axis_angle_to_euler, euler_to_axis_angle  # noqa: E402
+from data.cervical_prior import PriorConfig, head_rotations, sample_persons, sample_sequences, segmental_euler  # noqa: E402
 from data.joint_limits import within_limits  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
 from models.head2neck import Head2NeckConfig, Head2NeckMLP, head_error_deg, predict_theta  # noqa: E402
@@ -127,6 +136,130 @@ def training(args) -> None:
           f"inside limits {final['within_limits']:.4f}")
 
 
+# ----------------------------------------------------------------------------- styles (issue 46)
+
+SHARE_DIRECTIONS = (("axial", 1, 1), ("flexion", 0, 1), ("extension", 0, -1), ("lateral", 2, 1))  # drive, sign
+
+
+def prior_shares(style: str, size: float = 0.5, persons: int = 400) -> dict[str, np.ndarray]:
+    """Median per-level share [J] of each direction of the prior's ``style`` at drive ``size`` (no other drive)."""
+    people = sample_persons(persons, np.random.default_rng(5), PriorConfig(style=style))
+    out = {}
+    for name, axis, sign in SHARE_DIRECTIONS:
+        drives = np.zeros((persons, 1, 3))
+        drives[..., axis] = sign * size
+        angles = segmental_euler(drives, people)[:, 0, :, axis]                 # [N,J]
+        out[name] = np.median(angles / angles.sum(-1, keepdims=True), axis=0)
+    return out
+
+
+def turn_heads(rig, degrees=(10.0, 20.0, 30.0, 45.0)) -> torch.Tensor:
+    """Head orientations [K,3,3] of pure turns: every joint turning about its own axial axis by 1/8 of ``degrees``."""
+    euler = torch.zeros(len(degrees), 8, 3)
+    euler[..., 1] = torch.deg2rad(torch.tensor(degrees))[:, None] / 8
+    return head_rotations(rig, euler_to_axis_angle(euler))
+
+
+def axial_shares(theta: torch.Tensor) -> np.ndarray:
+    """Per-level axial shares [K,J] of anatomical theta [K,J,3] (Euler ay over its sum)."""
+    axial = axis_angle_to_euler(theta)[..., 1].numpy()
+    return axial / axial.sum(-1, keepdims=True)
+
+
+def shipped(name: str):
+    from models.pretrained import NAMED, pretrained_path
+
+    return load_model(pretrained_path(NAMED["head2neck"].get(name, "head2neck")), task="head2neck")[0]
+
+
+def styles(rig_path: str | None = None) -> None:
+    from hack_standin import hack_standin, solve_hack_style
+
+    rig = HeadNeckModel.builtin()
+    row = lambda label, x: print(f"{label:34s}" + "".join(f"{float(v):7.3f}" for v in x))  # noqa: E731
+    print("per-level shares of the prior (median of 400 persons, drive 0.5, one direction at a time)")
+    print(f"{'style / direction':34s}" + "".join(f"{n:>7s}" for n in rig.joint_names))
+    shares = {style: prior_shares(style) for style in ("invivo", "hack")}
+    for name, _, _ in SHARE_DIRECTIONS:
+        for style in ("invivo", "hack"):
+            row(f"{style:7s}{name}", shares[style][name])
+    heads = turn_heads(rig)
+    models = {name: shipped(name) for name in ("default", "hack")}
+    print("\naxial shares on pure head turns of 10, 20, 30, 45 deg (mean over the four)")
+    for name, model in models.items():
+        with torch.no_grad():
+            row(f"shipped {name}", axial_shares(rig.to_anatomical(predict_theta(model, rig, heads))).mean(0))
+    row("HACK-style solver (E_sim, E_rot)", axial_shares(solve_hack_style(heads, rig)).mean(0))
+    print("\nmean joint error (deg) on the HACK-style stand-in (500 frames each; the models' head error: max deg)")
+    methods = ("default", "hack", "uniform", "invivo")
+    print(f"{'seed, rig':34s}" + "".join(f"{m:>9s}" for m in methods) + f"{'head max':>10s}")
+    rigs = {"built-in": rig, **({Path(rig_path).name: HeadNeckModel.load(rig_path)} if rig_path else {})}
+    for rig_name, each in rigs.items():
+        for seed in (0, 1, 2):
+            truth = hack_standin(each, seed)
+            head = head_rotations(each, truth)
+            table, head_max = errors_of(models, each, truth, head)
+            print(f"{f'{seed}, {rig_name}':34s}" + "".join(f"{float(table[m].mean()):9.2f}" for m in methods)
+                  + f"{head_max:10.1e}")
+            if seed == 0:
+                for m in methods:
+                    row(f"  per joint, {m}", table[m])
+
+
+def errors_of(models: dict, rig, truth: torch.Tensor, head: torch.Tensor) -> tuple[dict[str, torch.Tensor], float]:
+    """(per-joint mean angular error (deg) [J] of the models and the uniform / in-vivo splits on ``truth``, the
+    models' largest head orientation error, deg)."""
+    from test_head2neck import split_corrected
+
+    from base.rotations import axis_angle_to_matrix, relative_angle
+
+    with torch.no_grad():
+        outputs = {name: rig.to_anatomical(predict_theta(model, rig, head)) for name, model in models.items()}
+    outputs.update({split: split_corrected(head, rig, split) for split in ("uniform", "invivo")})
+    reference = axis_angle_to_matrix(truth)
+    head_max = max(float(head_error_deg(outputs[name], head, rig).max()) for name in models)
+    return {name: torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), reference)).mean(0)
+            for name, theta in outputs.items()}, head_max
+
+
+CALIBRATION_FRAMES = (50, 150, 300, 500, 1500)
+CALIBRATION_PRIOR_WEIGHTS = (0.0, 0.5)
+
+
+def calibration() -> None:
+    """Error on a held-out session (seed 3) of ``data=theta_seq`` runs on the first N frames of a recording."""
+    from hack_standin import hack_standin
+
+    from base.cli import compose_config
+    from data.splits import split_by_file
+    from tasks import loop
+
+    rig = HeadNeckModel.builtin()
+    recording = torch.cat([rig.from_anatomical(hack_standin(rig, seed)) for seed in (0, 1, 2)]).numpy()
+    held_out = rig.from_anatomical(hack_standin(rig, 3)).numpy()
+    split_seed = next(s for s in range(100) if split_by_file(["a", "b"], 0.5, s)[1] == ["b"])
+    print(f"calibration: data=theta_seq on the first N of {len(recording)} frames, scored on {len(held_out)} "
+          f"held-out frames (mean joint error, deg)")
+    print(f"{'frames':>8s}" + "".join(f"{'prior_weight ' + str(w):>18s}" for w in CALIBRATION_PRIOR_WEIGHTS)
+          + f"{'seconds':>10s}")
+    for frames in CALIBRATION_FRAMES:
+        cells, seconds = [], 0.0
+        for weight in CALIBRATION_PRIOR_WEIGHTS:
+            with tempfile.TemporaryDirectory() as folder:
+                folder = Path(folder)
+                (folder / "data").mkdir()
+                np.save(folder / "data" / "a.npy", recording[:frames])
+                np.save(folder / "data" / "b.npy", held_out)
+                cfg = compose_config("train", ["task=head2neck", "data=theta_seq", f"data.path={folder / 'data'}",
+                                               "data.val_fraction=0.5", f"data.split_seed={split_seed}",
+                                               f"data.prior_weight={weight}", "trainer.progress=false"])
+                start = time.perf_counter()
+                final = loop.fit(cfg, folder / "run")
+                seconds += time.perf_counter() - start
+            cells.append(final["joint_err_deg"])
+        print(f"{frames:8d}" + "".join(f"{c:18.2f}" for c in cells) + f"{seconds:10.0f}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", default=None, help="a head2neck checkpoint (default: random weights)")
@@ -136,7 +269,16 @@ def main() -> None:
     parser.add_argument("--rig", default=None, help="also score the stand-in on this rig file (e.g. the release's)")
     parser.add_argument("--accuracy", action="store_true", help="stand-in recording and shifted-prior errors")
     parser.add_argument("--train", action="store_true", help="also time a default training run")
+    parser.add_argument("--styles", action="store_true", help="shares and errors of the in-vivo and HACK styles")
+    parser.add_argument("--calibration", action="store_true", help="frames of a recording against its error")
     args = parser.parse_args()
+    if args.styles or args.calibration:
+        torch.set_num_threads(1)
+        if args.styles:
+            styles(args.rig)
+        if args.calibration:
+            calibration()
+        return
     inference(args)
     if args.accuracy:
         accuracy(args)

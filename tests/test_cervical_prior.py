@@ -1,4 +1,4 @@
-"""The in-vivo prior of cervical motion (data/cervical_prior.py): the published kinematics it is built on,
+"""The in-vivo prior of cervical motion (data/cervical_prior/invivo.py): the published kinematics it is built on,
 shares that depend on the direction and size of the head motion, coupling, limits, smoothness, loader.
 
 The published figures are typed here from the sources (not read from the module they check).

@@ -7,6 +7,8 @@ by ``train.py`` on the built-in procedural rig and synthetic data only: nothing 
 the HACK release.  ``benchmarks/retrain_pretrained.py`` retrains them and compares with the manifest.
 
 Shipping a trained run: ``python -m models.pretrained run=runs/<task>/<time> name=<file stem>`` (``.cli``).
+Each task has a default model (``DEFAULTS``, a setting's ``default``) and may ship others by name
+(``NAMED``: ``head2neck=hack`` is ``head2neck_hack.pt``, trained on the prior's HACK style).
 """
 from __future__ import annotations
 
@@ -25,6 +27,9 @@ MANIFEST = PRETRAINED / "manifest.json"
 # The default model of each task, used by infer.py when no checkpoint is given.
 DEFAULTS = {"larynx_transformer": "larynx_transformer", "head2neck": "head2neck",
             "swallow_template": "swallow_template"}
+# Other shipped models of a task, by the name a setting gives (infer.py's ``head2neck=hack``): {task: {name: entry}}.
+# ``hack``: trained on the prior's HACK style (``data.prior.style=hack``, ``data.cervical_prior.hack``).
+NAMED = {"head2neck": {"hack": "head2neck_hack"}}
 
 
 def sha256(path: str | os.PathLike) -> str:
@@ -66,11 +71,16 @@ def default_checkpoint(task: str) -> Path:
 def chosen_checkpoint(value: str | None, task: str, key: str, part: str,
                       announce=print) -> tuple[str | Path | None, str | None]:
     """The checkpoint a ``key=`` setting names for ``part`` (e.g. the larynx), and its provenance label:
-    ``default`` is the shipped model of ``task`` (None, announced, when none ships), ``none`` (or null, or
-    empty) is None (the part rests), anything else is the path given."""
+    ``default`` is the shipped model of ``task`` (None, announced, when none ships), a name of ``NAMED[task]``
+    (e.g. ``hack``) that shipped model, ``none`` (or null, or empty) is None (the part rests), anything else
+    is the path given."""
     choice = "none" if value is None or str(value).lower() in ("none", "null", "") else str(value)
     if choice == "none":
         return None, None
+    if choice in NAMED.get(task, {}):
+        path = pretrained_path(NAMED[task][choice])
+        announce(f"{part}: the shipped model {path.name} ({key}={choice})")
+        return path, f"shipped:{path.name}"
     if choice != "default":
         return choice, choice
     if DEFAULTS[task] not in read_manifest():
