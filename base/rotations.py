@@ -1,6 +1,8 @@
 """Rotation conversions: the project's one place for them (kornia underneath).
 
 Conventions owned here:
+- torch tensors through kornia; numpy float64 arrays (``*_np``, for few-frame work where torch's per-call
+  cost dominates) through scipy's ``Rotation``, in the same conventions.
 - Axis-angle ("rotation vector") ``[..., 3]`` in radians, right-handed.
 - Quaternions ``[..., 4]`` as ``(w, x, y, z)``; ``quaternion_multiply(a, b)`` is the rotation b
   followed by a (Hamilton product).
@@ -17,9 +19,11 @@ Conventions owned here:
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from kornia.geometry import conversions as kc
+from scipy.spatial.transform import Rotation
 
 
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
@@ -28,10 +32,28 @@ def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     return kc.axis_angle_to_rotation_matrix(axis_angle.reshape(-1, 3)).reshape(*shape, 3, 3)
 
 
+# The log map from the skew part of R: w = vee((R - R^T) / 2) = sin(angle) axis, cos(angle) = (trace - 1) / 2.
+# Exact and a dozen operations away from angle pi; within NEAR_PI of it, where w vanishes, the conversion
+# through the quaternion (kornia; scipy for numpy) takes over.
+NEAR_PI = 0.1
+
+
+def _skew_vector(matrix):
+    return 0.5 * (matrix[..., [2, 0, 1], [1, 2, 0]] - matrix[..., [1, 2, 0], [2, 0, 1]])
+
+
 def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
-    """[..., 3, 3] -> [..., 3] radians, angle in [0, pi]."""
-    shape = matrix.shape[:-2]
-    return kc.rotation_matrix_to_axis_angle(matrix.reshape(-1, 3, 3)).reshape(*shape, 3)
+    """[..., 3, 3] rotation matrices -> [..., 3] radians, angle in [0, pi] (differentiable, finite gradients
+    at the identity)."""
+    skew = _skew_vector(matrix)
+    sine = torch.sqrt((skew * skew).sum(-1).clamp_min(1e-30))
+    angle = torch.atan2(sine, 0.5 * (matrix.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0))
+    out = skew * (angle / sine)[..., None]                        # angle / sin(angle) -> 1 at the identity
+    near_pi = angle > torch.pi - NEAR_PI
+    if bool(near_pi.any()):
+        through_quaternion = kc.rotation_matrix_to_axis_angle(matrix.reshape(-1, 3, 3)).reshape(out.shape)
+        out = torch.where(near_pi[..., None], through_quaternion, out)
+    return out
 
 
 def matrix_to_quaternion(matrix: torch.Tensor) -> torch.Tensor:
@@ -108,11 +130,13 @@ def ypr_to_matrix(ypr: torch.Tensor) -> torch.Tensor:
     """Head yaw, pitch, roll [...,3] radians -> [...,3,3] ``Ry(yaw) @ Rx(pitch) @ Rz(roll)`` (intrinsic: yaw,
     then pitch, then roll; in the rig's frame + yaw turns the face to the subject's left, + pitch looks
     down, + roll tilts towards the right shoulder; ``motion.head2neck`` maps tracker angles onto it)."""
-    zero = torch.zeros_like(ypr[..., 0])
-    yaw = axis_angle_to_matrix(torch.stack([zero, ypr[..., 0], zero], -1))
-    pitch = axis_angle_to_matrix(torch.stack([ypr[..., 1], zero, zero], -1))
-    roll = axis_angle_to_matrix(torch.stack([zero, zero, ypr[..., 2]], -1))
-    return yaw @ pitch @ roll
+    cos, sin = torch.cos(ypr), torch.sin(ypr)
+    cy, cp, cr = cos.unbind(-1)
+    sy, sp, sr = sin.unbind(-1)
+    # Ry(yaw) @ Rx(pitch) @ Rz(roll) multiplied out
+    return torch.stack([torch.stack([cy * cr + sy * sp * sr, -cy * sr + sy * sp * cr, sy * cp], -1),
+                        torch.stack([cp * sr, cp * cr, -sp], -1),
+                        torch.stack([-sy * cr + cy * sp * sr, sy * sr + cy * sp * cr, cy * cp], -1)], -2)
 
 
 def relative_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -121,3 +145,38 @@ def relative_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     skew = torch.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
     trace = r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2]
     return torch.atan2(0.5 * skew.norm(dim=-1), 0.5 * (trace - 1.0))
+
+
+# ----------------------------------------------------------------------------- numpy (scipy), same conventions
+# scipy's lower-case "xyz" is extrinsic: x, then y, then z about the fixed axes, i.e. Rz(az) Ry(ay) Rx(ax).
+
+
+def euler_to_matrix_np(euler: np.ndarray) -> np.ndarray:
+    """[..., 3] (ax, ay, az) -> [..., 3, 3] ``Rz(az) Ry(ay) Rx(ax)``."""
+    euler = np.asarray(euler, dtype=np.float64)
+    return Rotation.from_euler("xyz", euler.reshape(-1, 3)).as_matrix().reshape(*euler.shape[:-1], 3, 3)
+
+
+def euler_to_axis_angle_np(euler: np.ndarray) -> np.ndarray:
+    """[..., 3] (ax, ay, az) -> [..., 3] radians, angle in [0, pi]."""
+    euler = np.asarray(euler, dtype=np.float64)
+    return Rotation.from_euler("xyz", euler.reshape(-1, 3)).as_rotvec().reshape(euler.shape)
+
+
+def axis_angle_to_euler_np(axis_angle: np.ndarray) -> np.ndarray:
+    """[..., 3] radians -> [..., 3] (ax, ay, az) with ``R = Rz(az) Ry(ay) Rx(ax)``, ay in [-pi/2, pi/2]."""
+    axis_angle = np.asarray(axis_angle, dtype=np.float64)
+    return Rotation.from_rotvec(axis_angle.reshape(-1, 3)).as_euler("xyz").reshape(axis_angle.shape)
+
+
+def matrix_to_axis_angle_np(matrix: np.ndarray) -> np.ndarray:
+    """[..., 3, 3] rotation matrices -> [..., 3] radians, angle in [0, pi] (as :func:`matrix_to_axis_angle`)."""
+    matrix = np.asarray(matrix, dtype=np.float64)
+    skew = _skew_vector(matrix)
+    sine = np.sqrt((skew * skew).sum(-1))
+    angle = np.arctan2(sine, 0.5 * (np.trace(matrix, axis1=-2, axis2=-1) - 1.0))
+    out = skew * np.where(sine > 1e-12, angle / np.maximum(sine, 1e-300), 1.0)[..., None]
+    near_pi = angle > np.pi - NEAR_PI
+    if near_pi.any():
+        out[near_pi] = Rotation.from_matrix(matrix[near_pi]).as_rotvec()
+    return out

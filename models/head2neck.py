@@ -57,24 +57,26 @@ quantity as ``HeadNeckModel.head_rotation`` without the translations.
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 
+import numpy as np
 import torch
 from torch import nn
 
 from base.errors import InputError
 from base.rotations import (
-    axis_angle_to_euler,
+    axis_angle_to_euler_np,
     axis_angle_to_quaternion,
-    euler_to_axis_angle,
-    euler_to_quaternion,
+    euler_to_axis_angle_np,
+    euler_to_matrix_np,
     matrix_to_axis_angle,
+    matrix_to_axis_angle_np,
     matrix_to_quaternion,
     matrix_to_rot6d,
     quaternion_multiply,
-    quaternion_to_axis_angle,
     quaternion_to_matrix,
     relative_angle,
 )
@@ -111,6 +113,15 @@ def split_head_rotation(head_rotations: torch.Tensor, rest: torch.Tensor, split:
     return in_joint_frames * torch.where(in_joint_frames >= 0, positive.to(v), negative.to(v))
 
 
+@functools.lru_cache(maxsize=8)
+def _invivo_constants(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The in-vivo prior's start shares, end shares [4 directions, J] and head range [4] (radians), built once
+    per dtype and device."""
+    start = torch.tensor(START_SHARES, dtype=dtype, device=device)
+    end = 2.0 * torch.tensor(FULL_SHARES, dtype=dtype, device=device) - start
+    return start, end, torch.deg2rad(torch.tensor(HEAD_RANGE_DEG, dtype=dtype, device=device))
+
+
 def invivo_shares(components: torch.Tensor) -> torch.Tensor:
     """The in-vivo prior's mean shares (``data.cervical_prior``: measured segmental contributions that change
     with the size of the motion) for the head's rotation in the joints' frames.
@@ -119,10 +130,7 @@ def invivo_shares(components: torch.Tensor) -> torch.Tensor:
     or extension by the sign, y: axial rotation, z: lateral bending) the share of a motion of size
     ``m = mean_j |u_jc| / T_c`` (T the default head range) is ``s0 + (s1 - s0) min(m, 1) / 2``.
     """
-    like = {"dtype": components.dtype, "device": components.device}
-    start = torch.tensor(START_SHARES, **like)                                   # [4 directions, J]
-    end = 2.0 * torch.tensor(FULL_SHARES, **like) - start
-    head_range = torch.deg2rad(torch.tensor(HEAD_RANGE_DEG, **like))
+    start, end, head_range = _invivo_constants(components.dtype, components.device)
     size = components.abs().mean(1)                                               # [B,3]
 
     def shares(direction: int, axis: int) -> torch.Tensor:                        # [B,J]
@@ -264,17 +272,23 @@ def chain_head_rotation(theta: torch.Tensor, rig) -> torch.Tensor:
     return quaternion_to_matrix(head_chain(axis_angle_to_quaternion(theta[:, chain]), rest)[0])
 
 
-def euler_rate_axes(euler: torch.Tensor) -> torch.Tensor:
+def euler_rate_axes(euler: np.ndarray) -> np.ndarray:
     """Columns mapping Euler-angle rates to the spatial angular velocity of ``R = Rz Ry Rx``.
 
     euler [...,3] (ax, ay, az) -> [...,3,3] with columns Rz Ry e_x, Rz e_y, e_z.
     """
-    cy, sy = torch.cos(euler[..., 1]), torch.sin(euler[..., 1])
-    cz, sz = torch.cos(euler[..., 2]), torch.sin(euler[..., 2])
-    zero, one = torch.zeros_like(cy), torch.ones_like(cy)
-    return torch.stack([torch.stack([cz * cy, -sz, zero], -1),
-                        torch.stack([sz * cy, cz, zero], -1),
-                        torch.stack([-sy, zero, one], -1)], dim=-2)
+    cy, sy = np.cos(euler[..., 1]), np.sin(euler[..., 1])
+    cz, sz = np.cos(euler[..., 2]), np.sin(euler[..., 2])
+    axes = np.zeros((*euler.shape[:-1], 3, 3))
+    axes[..., 0, 0], axes[..., 1, 0], axes[..., 2, 0] = cz * cy, sz * cy, -sy
+    axes[..., 0, 1], axes[..., 1, 1], axes[..., 2, 2] = -sz, cz, 1.0
+    return axes
+
+
+@functools.lru_cache(maxsize=8)
+def _euler_limits_np(margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """``data.joint_limits.euler_limits(margin)`` as float64 arrays, built once per margin."""
+    return tuple(x.numpy().astype(np.float64) for x in euler_limits(margin))
 
 
 def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iterations: int = 3,
@@ -282,38 +296,41 @@ def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iter
     """Spread the residual between the chain's head orientation and the target over the joints.
 
     theta [B,J,3] (anatomical frames), head_rotations [B,3,3] (target) -> theta [B,J,3] (anatomical
-    frames) inside the joint limits (``margin`` scales them) whose head orientation matches the target
-    (see the module docstring).  At most
-    ``iterations`` steps, fewer once every residual is below ``tolerance_deg``.  The steps are taken on
-    the joints' Euler angles, so the limits are a clamp: with E_j the Euler-rate axes
-    (:func:`euler_rate_axes`) the Jacobian of the head's world rotation vector is ``M_j E_j``.
+    frames, theta's dtype) inside the joint limits (``margin`` scales them) whose head orientation matches
+    the target (see the module docstring).  At most ``iterations`` steps, fewer once every residual is below
+    ``tolerance_deg``.  The steps are taken on the joints' Euler angles, so the limits are a clamp: with E_j
+    the Euler-rate axes (:func:`euler_rate_axes`) the Jacobian of the head's world rotation vector is
+    ``M_j E_j``.  Computed in float64 numpy on 3x3 matrices: a step is a few dozen small array operations,
+    where torch's per-call cost made one frame take ~5 ms (the live receiver's budget; bench_live.py).
+    Not differentiable (training's losses use :func:`chain_head_rotation`).
     """
-    dtype = theta.dtype
-    lower, upper = (x.to(theta) for x in euler_limits(margin))
     chain = chain_to(rig.parents, len(rig.parents) - 1)
-    rest = matrix_to_quaternion(rig.anatomical_rest_rotations[chain].to(dtype))
-    lower, upper = lower[chain], upper[chain]
-    target_inverse = matrix_to_quaternion(head_rotations.to(dtype).transpose(-1, -2))
-    euler = axis_angle_to_euler(theta)
-    chain_euler = torch.clamp(euler[:, chain], lower, upper)
-    eye = damping * torch.eye(3, dtype=dtype, device=theta.device)
+    rest = rig.anatomical_rest_rotations[chain].detach().cpu().numpy().astype(np.float64)      # C_j [K,3,3]
+    lower, upper = (limit[chain] for limit in _euler_limits_np(margin))
+    target = head_rotations.detach().cpu().numpy().astype(np.float64)                          # [B,3,3]
+    out = theta.detach().cpu().numpy().astype(np.float64)
+    euler = np.clip(axis_angle_to_euler_np(out[:, chain]), lower, upper)                        # [B,K,3]
+    eye = damping * np.eye(3)
     tolerance = math.radians(tolerance_deg)
     for step in range(iterations + 1):
-        head, frames = head_chain(euler_to_quaternion(chain_euler), rest)
-        # rho: the world rotation taking the chain's head to the target (log of H* H^T)
-        rho = -quaternion_to_axis_angle(quaternion_multiply(head, target_inverse))    # [B,3]
-        if step == iterations or float(rho.norm(dim=-1).max()) < tolerance:
+        world = rest @ euler_to_matrix_np(euler) @ rest.transpose(0, 2, 1)                      # C_j R_j C_j^T
+        prefix = [np.broadcast_to(np.eye(3), target.shape)]                                    # Q_parent(j)
+        for k in range(len(chain)):
+            prefix.append(prefix[-1] @ world[:, k])
+        # rho: the world rotation taking the chain's head to the target, log(H Q^T)
+        rho = matrix_to_axis_angle_np(target @ prefix[-1].transpose(0, 2, 1))                   # [B,3]
+        if step == iterations or float(np.linalg.norm(rho, axis=-1).max(initial=0.0)) < tolerance:
             break
-        jacobian = quaternion_to_matrix(frames) @ euler_rate_axes(chain_euler)           # [B,K,3,3]
-        gradient = torch.einsum("bkic,bi->bkc", jacobian, rho)                           # J^T rho
-        weight = torch.where(gradient >= 0, upper - chain_euler, chain_euler - lower).clamp_min(1e-6)
-        normal = torch.einsum("bkic,bkc,bkjc->bij", jacobian, weight, jacobian) + eye
-        multiplier = torch.linalg.solve(normal, rho.unsqueeze(-1)).squeeze(-1)
-        update = weight * torch.einsum("bkic,bi->bkc", jacobian, multiplier)            # W J^T lambda
-        chain_euler = torch.clamp(chain_euler + update, lower, upper)
-    euler = euler.clone()
-    euler[:, chain] = chain_euler
-    return euler_to_axis_angle(euler)
+        frames = np.stack(prefix[:-1], axis=1) @ rest                                         # M_j [B,K,3,3]
+        jacobian = frames @ euler_rate_axes(euler)                                              # [B,K,3(i),3(c)]
+        gradient = np.einsum("bkic,bi->bkc", jacobian, rho)                                     # J^T rho
+        weight = np.maximum(np.where(gradient >= 0, upper - euler, euler - lower), 1e-6)
+        normal = np.einsum("bkic,bkc,bkjc->bij", jacobian, weight, jacobian) + eye
+        multiplier = np.linalg.solve(normal, rho[..., None])[..., 0]
+        update = weight * np.einsum("bkic,bi->bkc", jacobian, multiplier)                       # W J^T lambda
+        euler = np.clip(euler + update, lower, upper)
+    out[:, chain] = euler_to_axis_angle_np(euler)
+    return torch.as_tensor(out, dtype=theta.dtype, device=theta.device)
 
 
 def head_error_deg(theta: torch.Tensor, head_rotations: torch.Tensor, rig) -> torch.Tensor:
