@@ -185,3 +185,37 @@ def test_browser_shows_the_receivers_last_frame(live):
         assert abs(state["tau"] - stream.recorded.tau[last]) < TOLERANCE and state["eta"] == 1.0
         assert np.abs(stream.recorded.theta[last]).max() > 1e-3               # a pose, not the rest
         assert not errors, errors
+
+
+def test_browser_lists_the_phones_and_shows_the_one_chosen(live):
+    rx, server = live
+    host, port = server.address
+    take = demo_as_take()
+    with headless_chromium() as browser:
+        page = browser.new_page(viewport={"width": 480, "height": 480})
+        page.goto(f"http://{host}:{port}/", timeout=20_000)
+        page.wait_for_function("window.hackneck && (window.hackneck.ready || window.hackneck.error)",
+                               timeout=20_000)
+        page.wait_for_function("document.getElementById('status').textContent === 'live: connected'",
+                               timeout=10_000)
+        # two phones at once, a frame of each per tick as they arrive: ana from the start of the take, ben
+        # from four seconds in (another pose)
+        for i in range(20):
+            send_and_drain(rx, [encode(DEVICE, "ana", take.frames[i], take.values[i]),
+                                encode("device-ben", "ben", take.frames[240 + i], take.values[240 + i])])
+            time.sleep(0.005)
+        page.wait_for_function("window.hackneck.phones().length === 2", timeout=10_000)
+        assert page.evaluate("window.hackneck.phones()") == [f"{DEVICE}/ana", "device-ben/ben"]
+        assert page.evaluate("document.getElementById('phone').value") == f"{DEVICE}/ana"   # the first seen
+        page.select_option("#phone", "device-ben/ben")                     # as a user picks it
+        send_and_drain(rx, [encode("device-ben", "ben", take.frames[i], take.values[i]) for i in range(260, 264)])
+        stream = rx.streams[("device-ben", "ben")]
+        last = len(stream.recorded.tau) - 1
+        page.wait_for_function(f"window.hackneck.state().frame === {last}", timeout=10_000)
+        state = page.evaluate("window.hackneck.state()")
+        expected = theta_quaternions(stream.recorded.theta[last])
+        for j, name in enumerate(rx.models.rig.joint_names):
+            got = np.array(state["bones"][name])
+            assert min(np.abs(got - expected[j]).max(), np.abs(got + expected[j]).max()) < TOLERANCE, name
+        ana = rx.streams[(DEVICE, "ana")]
+        assert np.abs(ana.recorded.theta[-1] - stream.recorded.theta[last]).max() > 1e-3   # ben's, not ana's

@@ -246,14 +246,31 @@
   }
 
   // ---- live: frames from motion.live's server over a WebSocket (the page served over http) ----
+  // Every phone seen is listed in the selector; the first is shown until another is chosen.
   let livePhone = null;
+  const phoneSelect = $('phone');
+  function selectPhone(phone) {
+    if (phone === livePhone) return;
+    livePhone = phone;
+    phoneSelect.value = phone;
+    series.time.length = 0; series.tau.length = 0; series.eta.length = 0; series.theta.length = 0;
+    series.count = 0;
+    plotDirty = true;
+  }
+  phoneSelect.addEventListener('change', () => selectPhone(phoneSelect.value));
+  function notePhone(phone) {
+    if ([...phoneSelect.options].some((o) => o.value === phone)) return;
+    phoneSelect.add(new Option(phone, phone));
+    phoneSelect.hidden = false;
+    if (livePhone === null) selectPhone(phone);
+  }
   function connectLive() {
     const socket = new WebSocket('ws://' + location.host + '/ws');
     socket.onopen = () => { statusBox.textContent = 'live: connected'; };
     socket.onmessage = (ev) => {
       try {
         const f = JSON.parse(ev.data);
-        if (livePhone === null) livePhone = f.phone;       // the first phone seen is shown
+        notePhone(f.phone);
         if (f.phone === livePhone) pushFrame(f);
       } catch (error) { console.error(error); }
     };
@@ -402,6 +419,8 @@
                width: canvas.clientWidth, height: canvas.clientHeight };
     },
     seek, applyFrame, pushFrame,
+    phones: () => [...phoneSelect.options].map((o) => o.value),
+    selectPhone,
     play() { setPlaying(true); },
     pause() { setPlaying(false); },
     playing: () => playing,
