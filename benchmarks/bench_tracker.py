@@ -1,7 +1,7 @@
 """Larynx tracker and normal-map renderer: speed, and accuracy on synthetic sequences per condition.
 
     python benchmarks/bench_tracker.py [--rig /tmp/hack_rig.npz] [--threads 1] [--frames 240] [--seeds 1]
-        [--sections speed,slide,conditions,ablations]
+        [--sections speed,slide,conditions,ablations,scale]
 
 Sequences (``scene.normal_sequences``): 256x256 at 0.08 cm/px, 30 fps, noise 0.05, 8-bit quantised, swallows
 (40 per minute), speech-like tau motion; per condition head motion (degrees per anatomical axis), the face
@@ -21,6 +21,11 @@ Figures:
   arg-max of the raw correlation over the whole frame); the median error of the raw position (px).
 - ablations (on the talking-and-moving conditions): without the window's calibration, low-pass 3 px,
   without the neck following the band, without the jaw's patch.
+- scale (not among the default sections): talking-and-moving sequences (``SCALE_CONDITIONS``) rendered at
+  0.5, 1 and 2 times 0.08 cm/px, the same view (512, 256 and 128 px square); per scale the R^2 (raw and
+  compensated) of the tracker set up as ``python -m motion.track`` sets it up (kernel, window calibration,
+  tracker settings and neck model at the scale) given the true scale and given the scale estimated from the
+  frames (``motion.track.scale.estimate_scale``, the first 90 frames), the estimate, its error and its time.
 """
 from __future__ import annotations
 
@@ -52,9 +57,10 @@ from motion.track import (  # noqa: E402
     rig_kernel,
     track_sequence,
 )
-from motion.track.kernel import with_window  # noqa: E402
+from motion.track.kernel import kernel_size_at, with_window  # noqa: E402
+from motion.track.scale import estimate_scale, sample_frames  # noqa: E402
 from scene.normal_sequences import SequenceConfig, head_motion, make_sequence, tau_r2  # noqa: E402
-from scene.render import NeckRenderer, render_normals  # noqa: E402
+from scene.render import DEFAULT_CM_PER_PX, NeckRenderer, neck_camera, render_normals  # noqa: E402
 
 SHARED = REPO.parent / "shared"
 LIVELINK = SHARED / "samples" / "livelinkface"
@@ -76,6 +82,8 @@ CONDITIONS = {
                                                 "expressions": str(LIVELINK / "facial.csv")},
 }
 BASE = {"frames": 240, "noise": 0.05, "quantize_8bit": True, "swallows_per_minute": 40.0}
+SCALE_CONDITIONS = ("talking (facial.csv), 6 deg", "talking (bsw_list.npy), 6 deg")
+SCALE_FACTORS = (0.5, 1.0, 2.0)
 
 
 def speed(rig, kernel, neck, threads: list[int]) -> None:
@@ -191,6 +199,42 @@ def conditions(rig, kernel, neck, frames: int, seeds: int, ablations: bool) -> N
                   + f"  {tau_r2(seq.tau, -base[:, 1]):8.3f}  {error:6.2f}   ({rendered:.0f} s to render)", flush=True)
 
 
+def tracked_r2(rig, seq, cm_per_px: float) -> tuple[float, float]:
+    """(raw, compensated) R^2 of the tracker set up at ``cm_per_px`` as the CLI sets it up."""
+    config = TrackerConfig().at_scale(cm_per_px)
+    kernel = calibrate_window(rig_kernel(rig, cm_per_px, kernel_size_at(cm_per_px)), rig, config)
+    neck = NeckModel.from_rig(rig, neck_camera(rig, cm_per_px=cm_per_px), config.neck)
+    track = track_sequence(seq.normals, kernel, config, init=tuple(seq.larynx_px[0]), neck=neck)
+    rise = track.y[0] - track.y
+    return tau_r2(seq.tau, rise), tau_r2(seq.tau, rise + track.neck[:, 1] - track.neck[0, 1])
+
+
+def scales(rig, frames: int, seeds: int) -> None:
+    print(f"tracking at an unknown scale: R^2 of tau from the rise (raw / compensated), {frames} frames, the "
+          f"view of 256 px at 0.08 cm/px, noise 0.05, 8-bit, 40 swallows/min:")
+    print(f"  {'condition':34s} seed  scale cm/px  size  ceiling  true scale     estimated      estimate  error   time")
+    for condition in SCALE_CONDITIONS:
+        overrides = CONDITIONS[condition]
+        recording = overrides.get("expressions")
+        if recording and not Path(recording).is_file():
+            print(f"  {condition:34s} skipped: {recording} not found")
+            continue
+        for seed in range(seeds):
+            for factor in SCALE_FACTORS:
+                true = DEFAULT_CM_PER_PX * factor
+                size = int(round(256 / factor))
+                seq = make_sequence(rig, SequenceConfig(**{**BASE, "frames": frames, **overrides, "cm_per_px": true,
+                                                           "size": size}), seed=seed)
+                started = time.perf_counter()
+                estimate = estimate_scale(sample_frames(seq.normals), rig)
+                elapsed = time.perf_counter() - started
+                given = tracked_r2(rig, seq, true)
+                found = tracked_r2(rig, seq, estimate.cm_per_px)
+                print(f"  {condition:34s} {seed:4d}  {true:11.3f}  {size:4d}  {seq.ceiling_r2():7.3f}  "
+                      f"{given[0]:.3f} / {given[1]:.3f}  {found[0]:.3f} / {found[1]:.3f}  {estimate.cm_per_px:8.4f}  "
+                      f"{100 * (estimate.cm_per_px / true - 1):+5.1f}%  {elapsed:4.1f} s", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", default="1", help="thread counts to time, comma separated")
@@ -219,6 +263,8 @@ def main() -> None:
         slide(rig, kernel)
     if "conditions" in sections or "ablations" in sections:
         conditions(rig, kernel, neck, args.frames, args.seeds, "ablations" in sections)
+    if "scale" in sections:
+        scales(rig, args.frames, args.seeds)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ the rise.  One module per part:
 - ``neck``: the neck's own motion at the larynx (:class:`NeckPatches`, :class:`NeckModel`);
 - ``match``: the frame-by-frame matcher and :func:`track_sequence`, the API;
 - ``calibration``: what the rig tells the tracker (pixels per tau unit, the match window);
+- ``scale``: the capture's pixel scale estimated from the frames, when it is not given;
 - ``cli``: ``python -m motion.track`` (:func:`run`, the CSV columns, the plot).
 
 Encoding and image files: ``data.normals``; camera, image convention and the larynx point (the
@@ -35,18 +36,21 @@ from motion.track.kernel import (
                                  bandpass,
                                  kernel_from_file,
                                  kernel_from_frame,
+                                 kernel_size_at,
                                  match_window,
                                  rescale_kernel,
                                  rig_kernel,
 )
 from motion.track.match import LarynxTracker, Match, Track, raw_correlation_argmax, smooth_track, track_sequence
 from motion.track.neck import NeckModel, NeckPatches
+from motion.track.scale import ScaleEstimate, check_scale, estimate_scale, sample_frames
 from motion.track.sources import NormalMapSource, check_normal_map, decode_frame, open_source
 
 __all__ = [
     "BandpassConfig", "CSV_COLUMNS", "KERNEL_SIZE", "LarynxKernel", "LarynxTracker", "Match", "NeckConfig",
-    "NeckModel", "NeckPatches", "NormalMapSource", "SearchConfig", "Track", "TrackCli", "TrackerConfig",
-    "WindowConfig", "bandpass", "calibrate_window", "check_normal_map", "decode_frame", "kernel_from_file",
-    "kernel_from_frame", "match_window", "open_source", "plot_track", "raw_correlation_argmax", "rescale_kernel",
-    "rig_kernel", "rig_px_per_tau", "run", "smooth_track", "track_columns", "track_sequence",
+    "NeckModel", "NeckPatches", "NormalMapSource", "ScaleEstimate", "SearchConfig", "Track", "TrackCli",
+    "TrackerConfig", "WindowConfig", "bandpass", "calibrate_window", "check_normal_map", "check_scale",
+    "decode_frame", "estimate_scale", "kernel_from_file", "kernel_from_frame", "kernel_size_at", "match_window",
+    "open_source", "plot_track", "raw_correlation_argmax", "rescale_kernel", "rig_kernel", "rig_px_per_tau", "run",
+    "sample_frames", "smooth_track", "track_columns", "track_sequence",
 ]

@@ -4,6 +4,14 @@
         [kernel=rig|frame|kernel.npy] [rig=hack_rig.npz] [px_per_tau=auto|<number>|null] [fps=30]
         [compensate=true]
 
+The capture's pixel scale at the neck (``cm_per_px``) sizes the kernel (70 px at 0.08 cm/px unless
+``kernel_size`` is given), the tracker's pixel settings (``TrackerConfig.at_scale``), the window's
+calibration, the neck model and ``px_per_tau``.
+Without ``cm_per_px=`` it is estimated from the first 90 frames (``motion.track.scale``: the rig's neck
+matched at scales 0.005-0.64 cm/px; within 2.1 % on the real rig's talking-and-moving sequences) and
+printed (``scale: 0.0812 cm/px, estimated ...``); a given ``cm_per_px`` that differs from the frames'
+by more than 15 % is used but warned about (one ``warning:`` line on stderr).
+
 Settings: :class:`TrackCli` (``configs/track.yaml`` holds what differs from its defaults).  Writes
 ``frame,time,x_px,y_px,tau_px,tau,confidence,tau_px_raw,neck_dx_px,neck_dy_px``:
 
@@ -22,6 +30,7 @@ Settings: :class:`TrackCli` (``configs/track.yaml`` holds what differs from its 
 """
 from __future__ import annotations
 
+import sys
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,17 +46,18 @@ from models.rig import HeadNeckModel
 from motion.track.calibration import calibrate_window, rig_px_per_tau
 from motion.track.config import TrackerConfig
 from motion.track.kernel import (
-    KERNEL_SIZE,
     LarynxKernel,
     kernel_from_file,
     kernel_from_frame,
+    kernel_size_at,
     rescale_kernel,
     rig_kernel,
 )
 from motion.track.match import Track, track_sequence
 from motion.track.neck import NeckModel
+from motion.track.scale import check_scale, estimate_scale, sample_frames
 from motion.track.sources import FLOAT_ENCODINGS, open_source
-from scene.render import DEFAULT_CM_PER_PX, neck_camera
+from scene.render import neck_camera
 
 CSV_COLUMNS = ("frame", "time", "x_px", "y_px", "tau_px", "tau", "confidence", "tau_px_raw", "neck_dx_px",
                "neck_dy_px")
@@ -66,9 +76,9 @@ class TrackCli:
     # init_x/init_y) | a kernel file (.npy [h,w,3], .png, .tif, .exr)
     kernel: str = "rig"
     rig: str = "builtin"            # the rig (kernel=rig, px_per_tau=auto, the neck model): builtin or a rig file
-    cm_per_px: float | None = None  # the capture's pixel scale at the neck (default 0.08); tracker.* pixels scale to it
+    cm_per_px: float | None = None  # the capture's pixel scale at the neck; without: estimated from the frames
     kernel_cm_per_px: float | None = None  # a kernel file's own scale, to rescale it to cm_per_px
-    kernel_size: int = KERNEL_SIZE  # pixels (kernel=rig and kernel=frame)
+    kernel_size: int | None = None  # pixels (kernel=rig and kernel=frame); default 70 at 0.08 cm/px (5.6 cm), scaled
     init_x: float | None = None     # larynx position in the first frame (column); without: the whole frame is searched
     init_y: float | None = None     # (row, rows go down)
     px_per_tau: str | None = "auto"  # auto (from the rig, kernel=rig only) | a number | null (no tau)
@@ -83,7 +93,7 @@ class TrackCli:
             raise ValueError(f"float_encoding={self.float_encoding}: expected auto, raw or encoded")
         if self.cm_per_px is not None and not self.cm_per_px > 0:
             raise ValueError(f"cm_per_px={self.cm_per_px}: expected a positive pixel scale")
-        if self.kernel_size < 5:
+        if self.kernel_size is not None and self.kernel_size < 5:
             raise ValueError(f"kernel_size={self.kernel_size}: expected at least 5 pixels")
 
 
@@ -103,14 +113,29 @@ def calibration(settings: TrackCli) -> float | None:
     return value
 
 
+def capture_scale(settings: TrackCli, source, rig) -> float:
+    """The capture's cm_per_px: the given one (warned about on stderr when the frames disagree with it) or
+    the frames' estimate (``motion.track.scale``); prints one line naming it."""
+    frames = sample_frames(normals for _, _, normals in source.frames())
+    if settings.cm_per_px is not None:
+        warning = check_scale(frames, rig, float(settings.cm_per_px), settings.tracker.bandpass)
+        if warning:
+            print(warning, file=sys.stderr)
+        print(f"scale: {settings.cm_per_px:g} cm/px (given)")
+        return float(settings.cm_per_px)
+    estimate = estimate_scale(frames, rig, settings.tracker.bandpass)
+    print(f"scale: {estimate.cm_per_px:.4g} cm/px, estimated from {estimate.frames} frames (peak correlation "
+          f"{estimate.score:.2f} with the rig's neck); give cm_per_px= to set it")
+    return estimate.cm_per_px
+
+
 def build_kernel(settings: TrackCli, first_frame: np.ndarray, first_label: str, rig_loader,
-                 config: TrackerConfig) -> LarynxKernel:
-    """The kernel the settings ask for (``kernel=rig|frame|<file>``), at the capture's scale."""
-    size = int(settings.kernel_size)
-    cm_per_px = settings.cm_per_px
+                 config: TrackerConfig, cm_per_px: float) -> LarynxKernel:
+    """The kernel the settings ask for (``kernel=rig|frame|<file>``), at the capture's scale ``cm_per_px``."""
+    size = int(settings.kernel_size or kernel_size_at(cm_per_px))
     if settings.kernel == "rig":
         rig = rig_loader()
-        return calibrate_window(rig_kernel(rig, cm_per_px or DEFAULT_CM_PER_PX, size), rig, config)
+        return calibrate_window(rig_kernel(rig, cm_per_px, size), rig, config)
     if settings.kernel == "frame":
         if settings.init_x is None or settings.init_y is None:
             raise InputError("kernel=frame cuts the kernel from the first frame: give init_x=... init_y=... "
@@ -118,7 +143,7 @@ def build_kernel(settings: TrackCli, first_frame: np.ndarray, first_label: str, 
         return kernel_from_frame(first_frame, float(settings.init_x), float(settings.init_y), size, first_label,
                                  cm_per_px)
     kernel = kernel_from_file(settings.kernel, settings.kernel_cm_per_px, settings.float_encoding)
-    return rescale_kernel(kernel, cm_per_px) if cm_per_px else kernel
+    return rescale_kernel(kernel, cm_per_px)
 
 
 def track_columns(track: Track, fps: float, rest_frame: int = 0, px_per_tau: float | None = None,
@@ -188,13 +213,14 @@ def run(cfg) -> dict:
     if head is None:
         raise InputError(f"{settings.input}: no frames; expected at least one normal map")
     _, first_label, first = head
-    cm_per_px = settings.cm_per_px or DEFAULT_CM_PER_PX
-    config = settings.tracker.at_scale(cm_per_px) if settings.cm_per_px is not None else settings.tracker
-    kernel = build_kernel(settings, first, first_label, rig_loader, config)
+    cm_per_px = capture_scale(settings, source, rig_loader())
+    config = settings.tracker.at_scale(cm_per_px)
+    kernel = build_kernel(settings, first, first_label, rig_loader, config, cm_per_px)
     h, w = first.shape[:2]
     if kernel.size[0] > w or kernel.size[1] > h:
         raise InputError(f"{first_label}: the {kernel.size[0]}x{kernel.size[1]} kernel is larger than the "
-                         f"{w}x{h} frames; give cm_per_px= (the capture's scale) or a smaller kernel_size")
+                         f"{w}x{h} frames at {cm_per_px:.4g} cm/px; check cm_per_px= (the capture's scale) or "
+                         f"give a smaller kernel_size")
     neck = None
     if settings.compensate or config.neck.follow:
         neck = NeckModel.from_rig(rig_loader(), neck_camera(rig_loader(), cm_per_px=cm_per_px), config.neck)

@@ -94,7 +94,7 @@ class NeckConfig:
     """Patches of larynx-free skin below and beside the larynx, matched against the first frame.
 
     With ``follow`` the search band moves with the neck's estimated motion at the larynx (else it moves
-    on at the larynx's own constant velocity); the estimate also gives the tracker's neck-relative
+    on by one frame of the larynx's own velocity); the estimate also gives the tracker's neck-relative
     ``tau_px`` (``compensate=true`` on the command line).
     """
 

@@ -26,8 +26,13 @@ from motion.track.config import UNCALIBRATED_SIGMA_Y_PX, BandpassConfig, WindowC
 from motion.track.sources import MIN_NORM, check_normal_map, decode_frame, float_is_raw
 from scene.render import DEFAULT_CM_PER_PX, NeckRenderer, neck_camera
 
-KERNEL_SIZE = 70                 # the paper's 70x70x3 kernel
+KERNEL_SIZE = 70                 # the paper's 70x70x3 kernel, pixels at 0.08 cm/px (5.6 cm)
 CONTEXT_MARGIN = 96              # px of rendered view around the rig's kernel (band-pass context)
+
+
+def kernel_size_at(cm_per_px: float) -> int:
+    """The kernel's side in pixels at ``cm_per_px``: ``KERNEL_SIZE`` at 0.08 cm/px, the same 5.6 cm at others."""
+    return max(5, int(round(KERNEL_SIZE * DEFAULT_CM_PER_PX / float(cm_per_px))))
 
 
 def bandpass(normals: np.ndarray, config: BandpassConfig) -> np.ndarray:

@@ -15,7 +15,8 @@ With a neck model (``motion.track.neck``) each frame first measures the neck's o
 larynx; the tracker keeps the larynx's position relative to the neck (its slide) and predicts the next
 frame's position as the last slide moved on at the slide's own velocity plus the neck's displacement
 in the new frame, so the band follows the head and the jaw rather than extrapolating them.  Without
-one, the prediction is the last accepted position moved on at constant velocity.
+one, the prediction is the last accepted position moved on by one frame of its velocity (not further
+while frames are rejected).
 
 Optional smoothing (``smooth_frames`` > 0): a Gaussian of that sigma in frames, each frame weighted by
 its confidence (rejected frames are then filled from their neighbours).
@@ -121,15 +122,16 @@ class LarynxTracker:
         return x0 + px + cx, y0 + py + cy, float(peak), inside
 
     def prediction(self) -> tuple[float, float] | None:
-        """Where the larynx should be in the current frame: the last slide moved on at its velocity, plus
-        the neck's displacement in this frame (with ``neck.follow`` off or without a neck model: the last
-        position moved on at constant velocity); None before the first position."""
+        """Where the larynx should be in the current frame: the last slide moved on by one frame of its
+        velocity, plus the neck's displacement in this frame (with ``neck.follow`` off or without a neck
+        model: the last position moved on by one frame of its velocity); None before the first position.
+        The velocity is not extrapolated through rejected frames: at the top of a swallow, where the
+        larynx turns under the jaw and its matches are rejected, a band run on at the rise's velocity
+        left the larynx behind (at 0.16 cm/px it then locked onto the chin; issue 46)."""
         if self.slide is None:
             return None
-        steps = self.missed + 1
         offset = self._offset()
-        return (self.slide[0] + self.velocity[0] * steps + offset[0],
-                self.slide[1] + self.velocity[1] * steps + offset[1])
+        return (self.slide[0] + self.velocity[0] + offset[0], self.slide[1] + self.velocity[1] + offset[1])
 
     def _start_patches(self, normals: np.ndarray, at: tuple[float, float]) -> None:
         """Take the neck's patches around the larynx position ``at`` of this frame (the neck's origin)."""
