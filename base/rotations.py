@@ -152,9 +152,15 @@ def relative_angle(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def euler_to_matrix_np(euler: np.ndarray) -> np.ndarray:
-    """[..., 3] (ax, ay, az) -> [..., 3, 3] ``Rz(az) Ry(ay) Rx(ax)``."""
+    """[..., 3] (ax, ay, az) -> [..., 3, 3] ``Rz(az) Ry(ay) Rx(ax)``, multiplied out."""
     euler = np.asarray(euler, dtype=np.float64)
-    return Rotation.from_euler("xyz", euler.reshape(-1, 3)).as_matrix().reshape(*euler.shape[:-1], 3, 3)
+    cos, sin = np.cos(euler), np.sin(euler)
+    cx, cy, cz, sx, sy, sz = cos[..., 0], cos[..., 1], cos[..., 2], sin[..., 0], sin[..., 1], sin[..., 2]
+    out = np.empty((*euler.shape[:-1], 3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = cz * cy, cz * sy * sx - sz * cx, cz * sy * cx + sz * sx
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = sz * cy, sz * sy * sx + cz * cx, sz * sy * cx - cz * sx
+    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = -sy, cy * sx, cy * cx
+    return out
 
 
 def euler_to_axis_angle_np(euler: np.ndarray) -> np.ndarray:
