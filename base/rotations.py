@@ -50,7 +50,7 @@ def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
     angle = torch.atan2(sine, 0.5 * (matrix.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0))
     out = skew * (angle / sine)[..., None]                        # angle / sin(angle) -> 1 at the identity
     near_pi = angle > torch.pi - NEAR_PI
-    if bool(near_pi.any()):
+    if not matrix.is_meta and bool(near_pi.any()):  # (meta tensors carry shapes only: nothing to choose)
         through_quaternion = kc.rotation_matrix_to_axis_angle(matrix.reshape(-1, 3, 3)).reshape(out.shape)
         out = torch.where(near_pi[..., None], through_quaternion, out)
     return out

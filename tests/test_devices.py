@@ -52,8 +52,9 @@ def test_the_larynx_task_moves_its_model_and_decodes_there():
 
 
 def test_the_head2neck_task_moves_model_rig_and_validation_frames():
-    """The loss's and the evaluation's tensor code on the moved task (the early-exit test of the correction
-    reads a number, which meta tensors do not have: iterations=0 here)."""
+    """The loss's and the evaluation's tensor code on the moved task.  The exact correction is float64 numpy
+    on the CPU (``models.head2neck.correct_to_head``: it copies to the CPU and back), which a meta tensor,
+    having no values, cannot give: it runs on CPU copies here and its result goes back to the device."""
     task = Head2NeckTask(head2neck_config())
     batch = to_device(task.batch(0, torch.Generator().manual_seed(0)), META)
     assert task.to(META) is task
@@ -62,8 +63,11 @@ def test_the_head2neck_task_moves_model_rig_and_validation_frames():
     assert rotation_limit_energy(theta).device == adjacent_similarity_energy(theta, task.rig.parents).device == META
     head = task.val["head"]
     assert head.device == META
-    corrected = correct_to_head(task.model(head, task.rest), head, task.rig, iterations=0)
-    assert corrected.shape == (len(head), task.rig.num_joints, 3)
+    raw = task.model(head, task.rest)
+    cpu_task = Head2NeckTask(head2neck_config())
+    corrected = correct_to_head(torch.zeros(raw.shape), torch.eye(3).expand(len(head), 3, 3), cpu_task.rig)
+    assert corrected.shape == (len(head), task.rig.num_joints, 3) and corrected.device.type == "cpu"
+    corrected = corrected.to(META)
     for split in ("uniform", "rom", "invivo"):
         assert split_head_rotation(head, task.rest, split).device == META
     assert head_error_deg(corrected, head, task.rig).shape == (len(head),)
