@@ -186,3 +186,17 @@ def matrix_to_axis_angle_np(matrix: np.ndarray) -> np.ndarray:
     if near_pi.any():
         out[near_pi] = Rotation.from_matrix(matrix[near_pi]).as_rotvec()
     return out
+
+
+def matrix_to_ypr_np(matrix: np.ndarray) -> np.ndarray:
+    """Head orientations [..., 3, 3] -> yaw, pitch, roll [..., 3] radians: the inverse of :func:`ypr_to_matrix`
+    (``R = Ry(yaw) Rx(pitch) Rz(roll)``, |pitch| < 90 degrees)."""
+    r = np.asarray(matrix, dtype=np.float64)
+    return np.stack([np.arctan2(r[..., 0, 2], r[..., 2, 2]), np.arcsin(-np.clip(r[..., 1, 2], -1.0, 1.0)),
+                     np.arctan2(r[..., 1, 0], r[..., 1, 1])], axis=-1)
+
+
+def nearest_rotation_np(matrix: np.ndarray) -> np.ndarray:
+    """The rotation nearest to a roughly orthonormal [..., 3, 3] (scipy's orthonormalisation)."""
+    matrix = np.asarray(matrix, dtype=np.float64)
+    return Rotation.from_matrix(matrix.reshape(-1, 3, 3)).as_matrix().reshape(matrix.shape)

@@ -275,7 +275,7 @@ def test_infer_on_a_video_writes_params_and_face_frames(known_take, tmp_path):
 
 
 def test_head_ypr_inverts_ypr_to_matrix():
-    from motion.face.tracking import head_ypr
+    from base.rotations import matrix_to_ypr_np as head_ypr
 
     ypr = np.random.default_rng(3).uniform([-1.2, -1.2, -1.2], [1.2, 1.2, 1.2], (50, 3))
     np.testing.assert_allclose(head_ypr(ypr_to_matrix(torch.tensor(ypr)).numpy()), ypr, atol=1e-9)

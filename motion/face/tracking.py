@@ -10,7 +10,7 @@ Head rotation: the facial transformation matrix [4,4] maps MediaPipe's canonical
 face's own left, y up, z out of the face) into its camera frame (OpenGL's: x to the image's right, y up,
 z towards the viewer; the camera looks along -z).  A subject facing the camera has the face's left on the
 image's right, so both frames are the rig's world frame (``motion.head2neck``: x to the subject's left, y
-up, face towards +z) and the rotation block, orthonormalised (SVD: the nearest rotation), is directly a
+up, face towards +z) and the rotation block, orthonormalised (the nearest rotation), is directly a
 head orientation of the ``matrix`` convention, identity when facing the camera.  Checked on renders of
 the ICT head turned by known yaw, pitch and roll (tests/test_face_video.py).
 """
@@ -21,20 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from base.progress import progress_bar
+from base.rotations import nearest_rotation_np
+from data.expressions import EXPRESSION_NAMES, arkit_name
 from motion.face.frames import VideoFrames
 
-ARKIT_NAMES: tuple[str, ...] = (
-    "_neutral", "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight",
-    "cheekPuff", "cheekSquintLeft", "cheekSquintRight", "eyeBlinkLeft", "eyeBlinkRight", "eyeLookDownLeft",
-    "eyeLookDownRight", "eyeLookInLeft", "eyeLookInRight", "eyeLookOutLeft", "eyeLookOutRight", "eyeLookUpLeft",
-    "eyeLookUpRight", "eyeSquintLeft", "eyeSquintRight", "eyeWideLeft", "eyeWideRight", "jawForward", "jawLeft",
-    "jawOpen", "jawRight", "mouthClose", "mouthDimpleLeft", "mouthDimpleRight", "mouthFrownLeft",
-    "mouthFrownRight", "mouthFunnel", "mouthLeft", "mouthLowerDownLeft", "mouthLowerDownRight", "mouthPressLeft",
-    "mouthPressRight", "mouthPucker", "mouthRight", "mouthRollLower", "mouthRollUpper", "mouthShrugLower",
-    "mouthShrugUpper", "mouthSmileLeft", "mouthSmileRight", "mouthStretchLeft", "mouthStretchRight",
-    "mouthUpperUpLeft", "mouthUpperUpRight", "noseSneerLeft", "noseSneerRight",
-)
-_INDEX = {name.lower(): k for k, name in enumerate(ARKIT_NAMES)}
+# MediaPipe's categories: the ARKit names HACK's expressions map from (``data.expressions.arkit_name``) and
+# ``_neutral``, sorted as MediaPipe lists them.
+ARKIT_NAMES: tuple[str, ...] = ("_neutral", *sorted({arkit_name(n) for n in EXPRESSION_NAMES} - {None}))
+ARKIT_INDEX = {name.lower(): k for k, name in enumerate(ARKIT_NAMES)}  # lower-case name -> column
 
 
 @dataclass
@@ -56,22 +50,6 @@ class FaceSamples:
         return len(self.time)
 
 
-def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
-    """The rotation nearest (Frobenius) to ``matrix`` [...,3,3]: U V^T of its SVD, det +1."""
-    u, _, vt = np.linalg.svd(matrix)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ (vt * np.stack([np.ones_like(d), np.ones_like(d), d], -1)[..., :, None])
-
-
-def head_ypr(rotation: np.ndarray) -> np.ndarray:
-    """Yaw, pitch, roll [...,3] (radians) of head orientations [...,3,3]: the inverse of
-    ``base.rotations.ypr_to_matrix`` (R = Ry(yaw) Rx(pitch) Rz(roll); |pitch| < 90 deg), for what takes angles
-    (the live stream's HeadYaw, HeadPitch, HeadRoll)."""
-    r = np.asarray(rotation, dtype=np.float64)
-    return np.stack([np.arctan2(r[..., 0, 2], r[..., 2, 2]), np.arcsin(-np.clip(r[..., 1, 2], -1.0, 1.0)),
-                     np.arctan2(r[..., 1, 0], r[..., 1, 1])], axis=-1)
-
-
 def detect(landmarker, rgb: np.ndarray, milliseconds: int) -> tuple[np.ndarray, np.ndarray] | None:
     """(ARKit weights [52], facial transformation matrix [4,4]) of the face in ``rgb`` uint8 [H,W,3] at
     ``milliseconds`` (increasing between calls: VIDEO mode), or None when no face is found."""
@@ -83,7 +61,7 @@ def detect(landmarker, rgb: np.ndarray, milliseconds: int) -> tuple[np.ndarray, 
         return None
     weights = np.zeros(len(ARKIT_NAMES), dtype=np.float32)
     for category in result.face_blendshapes[0]:
-        k = _INDEX.get(category.category_name.lower())
+        k = ARKIT_INDEX.get(category.category_name.lower())
         if k is not None:
             weights[k] = category.score
     return weights, np.asarray(result.facial_transformation_matrixes[0], dtype=np.float64)
@@ -107,4 +85,4 @@ def track_faces(video: VideoFrames, landmarker, show_progress: bool = True) -> F
     progress.close()
     matrices = np.stack(matrices)
     return FaceSamples(np.asarray(times), np.asarray(found, dtype=bool), np.stack(weights),
-                       nearest_rotation(matrices[:, :3, :3]), matrices[:, :3, 3].copy())
+                       nearest_rotation_np(matrices[:, :3, :3]), matrices[:, :3, 3].copy())

@@ -31,7 +31,7 @@ from data.expressions import EXPRESSION_NAMES, ExpressionTrack, arkit_name
 from motion.face.frames import open_video
 from motion.face.model import find_face_model, open_landmarker, require_mediapipe
 from motion.face.smoothing import ROTATION_FILTER, WEIGHT_FILTER, continuous_quaternions, smooth_rotations
-from motion.face.tracking import ARKIT_NAMES, FaceSamples, track_faces
+from motion.face.tracking import ARKIT_INDEX, FaceSamples, track_faces
 
 DEFAULT_MAX_GAP = 0.5   # s: a face lost for longer is reported (a blink of tracking is not)
 
@@ -39,15 +39,14 @@ DEFAULT_MAX_GAP = 0.5   # s: a face lost for longer is reported (a blink of trac
 def hack_weights(arkit: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """ARKit weights [T,52] (``ARKIT_NAMES`` order) -> HACK psi [T,55] float32 and the HACK names without an
     ARKit source (left at 0)."""
-    index = {name.lower(): k for k, name in enumerate(ARKIT_NAMES)}
     psi = np.zeros((len(arkit), len(EXPRESSION_NAMES)), dtype=np.float32)
     missing = []
     for k, name in enumerate(EXPRESSION_NAMES):
         source = arkit_name(name)
-        if source is None or source.lower() not in index:
+        if source is None or source.lower() not in ARKIT_INDEX:
             missing.append(name)
             continue
-        psi[:, k] = arkit[:, index[source.lower()]]
+        psi[:, k] = arkit[:, ARKIT_INDEX[source.lower()]]
     return psi, missing
 
 

@@ -3,7 +3,7 @@
 Each frame goes through the face stage's landmarker (``motion.face``: the same model, VIDEO mode, the
 same name mapping and axis conversion as ``infer.py expressions=clip.mp4``) and becomes what a phone
 sends: a ``motion.live.packet.Frame`` of 52 ARKit weights (Unreal's order) and HeadYaw, HeadPitch, HeadRoll
-in radians (``motion.face.tracking.head_ypr`` of the rotation, the rig's convention: the stream runs with
+in radians (``base.rotations.matrix_to_ypr_np`` of the rotation, the rig's convention: the stream runs with
 ``head_units=rad`` and +1 signs).  One :class:`motion.live.stream.PhoneStream` (device ``camera<N>`` or the
 video's name, subject ``face``) resamples, runs the larynx step and head2neck, feeds the live view, and the
 session is written as the UDP mode writes it (``<subject>/params.npz``, ``capture.csv``, ``summary.json``).
@@ -25,9 +25,10 @@ import numpy as np
 
 from base.errors import InputError
 from base.files import atomic_folder
+from base.rotations import matrix_to_ypr_np, nearest_rotation_np
 from motion.face.frames import open_video, quiet_stderr
 from motion.face.model import find_face_model, open_landmarker, require_mediapipe
-from motion.face.tracking import ARKIT_NAMES, detect, head_ypr, nearest_rotation
+from motion.face.tracking import ARKIT_INDEX, detect
 from motion.live.outputs import write_session
 from motion.live.packet import EAR_BLENDSHAPES, NUM_WEIGHTS, VALUE_COUNT, Frame
 from motion.live.stream import PhoneStream, StreamOptions, run_pending
@@ -38,8 +39,7 @@ _MIRROR_NAME = {"left": "right", "right": "left"}
 
 
 def _ear_index(mirror: bool) -> np.ndarray:
-    """For each of Unreal's 52 names, the column of ``ARKIT_NAMES`` that feeds it (-1: none, TongueOut)."""
-    index = {name.lower(): k for k, name in enumerate(ARKIT_NAMES)}
+    """For each of Unreal's 52 names, the column of ``motion.face.ARKIT_NAMES`` that feeds it (-1: none, TongueOut)."""
     out = []
     for name in EAR_BLENDSHAPES:
         lower = name.lower()
@@ -48,7 +48,7 @@ def _ear_index(mirror: bool) -> np.ndarray:
                 if lower.endswith(side):
                     lower = lower[: -len(side)] + other
                     break
-        out.append(index.get(lower, -1))
+        out.append(ARKIT_INDEX.get(lower, -1))
     return np.asarray(out)
 
 
@@ -57,7 +57,7 @@ def frame_values(weights: np.ndarray, matrix: np.ndarray, ear_index: np.ndarray,
     values = np.zeros(VALUE_COUNT, dtype=np.float32)
     driven = ear_index >= 0
     values[:NUM_WEIGHTS][driven] = weights[ear_index[driven]]
-    ypr = head_ypr(nearest_rotation(np.asarray(matrix, dtype=np.float64)[:3, :3]))
+    ypr = matrix_to_ypr_np(nearest_rotation_np(np.asarray(matrix, dtype=np.float64)[:3, :3]))
     if mirror:
         ypr = ypr * np.array([-1.0, 1.0, -1.0])
     values[NUM_WEIGHTS:NUM_WEIGHTS + 3] = ypr
