@@ -95,9 +95,16 @@ def write_meshes(folder: Path, rig: HeadNeckModel, params: AnimationParams, mesh
     return count
 
 
-def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, folder: Path, announce=print) -> dict:
+def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, folder: Path, announce=print,
+                  out_dir: Path | None = None) -> dict:
     """Everything for one take into ``folder`` (``params`` drive the character when there is one); the
-    seconds each output took."""
+    seconds each output took.  ``out_dir``: where ``folder`` (a staging folder) ends up, the name the
+    reports give and the viewer's title."""
+    out_dir = folder if out_dir is None else out_dir
+
+    def report_line(report) -> None:
+        announce(report.summary().replace(str(folder), str(out_dir)))
+
     rig = models.rig if models.character is None else models.character
     seconds = {}
     started = time.perf_counter()
@@ -116,7 +123,7 @@ def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, fol
         started = time.perf_counter()
         report = export_glb(params, rig, folder / "anim.glb", check=False,
                             source=str(params.producers["source"]))
-        announce(report.summary())
+        report_line(report)
         seconds["glb"] = time.perf_counter() - started
     if "mp4" in cfg.export:
         started = time.perf_counter()
@@ -129,14 +136,14 @@ def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, fol
         started = time.perf_counter()
         glb = folder / "anim.glb" if "glb" in cfg.export else None
         companion = None if models.character is None else (load_params(folder / "source_params.npz"), models.rig)
-        report = build_viewer(params, rig, folder / "viewer.html", glb=glb, title=folder.name, companion=companion)
-        announce(report.summary())
+        report = build_viewer(params, rig, folder / "viewer.html", glb=glb, title=out_dir.name, companion=companion)
+        report_line(report)
         seconds["html"] = time.perf_counter() - started
     if "fbx" in cfg.export:  # Blender converts the GLB just written, else one made for it
         started = time.perf_counter()
         glb = folder / "anim.glb" if "glb" in cfg.export else None
         take = Path(str(params.producers.get("source", "hackneck"))).stem
         report = export_fbx(params, rig, folder / "anim.fbx", cfg.fbx_units, glb=glb, take=take)
-        announce(report.summary())
+        report_line(report)
         seconds["fbx"] = time.perf_counter() - started
     return seconds

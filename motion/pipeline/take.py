@@ -59,7 +59,7 @@ def run_take(cfg: InferConfig, models: Models, path: str | None, out_dir: Path, 
             params = retarget_params(params, models.rig, models.character, label, default_gains(models.character),
                                      source_name=str(track.source))
             seconds["retarget"] = time.perf_counter() - started
-        seconds.update(write_outputs(cfg, models, params, staging, announce))
+        seconds.update(write_outputs(cfg, models, params, staging, announce, out_dir))
     seconds = {"read": read_seconds, **seconds}
     return {"take": str(track.source), "status": "ok", "frames": len(params), "fps": params.fps,
             "seconds": round(float(params.time[-1]), 3), "tau_range": float(np.ptp(params.tau)),
