@@ -498,15 +498,22 @@ def predict_gru(model: GRUBaseline, sequences: list[LarynxSequence], index: dict
 
 
 def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str] = (), gru: bool = True,
-            holdout: str = "face", spacing: Spacing = None) -> dict[str, float]:
-    """Held-out RMSE of every method for (family, seed)."""
-    folder, run_dir = out / family / f"seed{seed}" / "pairs", out / family / f"seed{seed}" / "run"
+            holdout: str = "face", spacing: Spacing = None, training_seed: int | None = None) -> dict[str, float]:
+    """Held-out RMSE of every method for (family, seed); ``training_seed``: train.py's seed when it is not
+    the benchmark's (the held-out take, the people and the pairs stay those of ``seed``)."""
+    work = out / family / f"seed{seed}" / ("" if training_seed is None else f"train{training_seed}")
+    folder, run_dir = out / family / f"seed{seed}" / "pairs", work / "run"
     train_pairs, heldout = make_pairs(recordings, family, seed, folder, holdout, spacing)
     started = time.perf_counter()
-    checkpoint, evaluation, task = train_default(folder, run_dir, seed, list(extra))
+    checkpoint, evaluation, task = train_default(folder, run_dir, seed if training_seed is None else training_seed,
+                                                 list(extra))
     transformer_seconds = time.perf_counter() - started
     model = load_model(checkpoint, "larynx_transformer")[0]
     transformer = [predict_tau(model, s.psi, s.subject) for s in heldout]  # as infer.py subject=...
+    # An ensemble's members alone (member 0 is the single network of the training seed: task.members=1)
+    members = {}
+    for k, member in enumerate(getattr(model, "members", [])):
+        members[f"member{k}"] = rmse([predict_tau(member, s.psi, s.subject) for s in heldout], heldout)
     average_style = [predict_tau(model, s.psi) for s in heldout]           # infer.py without subject
     window = int(round(task.settings.ridge_window * FPS))
     weights, lam = fit_ridge(train_pairs, window, list(task.settings.ridge_lambdas))
@@ -529,18 +536,19 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
         "best_step": float(evaluation.get("best_step", task.total_steps)), "ridge_lambda": lam,
         "transformer_parameters": float(parameter_count(model)), "gru_hidden": float(hidden),
         "gru_parameters": float(parameter_count(gru_model)), "transformer_seconds": transformer_seconds,
-        "gru_seconds": gru_seconds,
+        "gru_seconds": gru_seconds, **members,
     }
     # Where the error lies: inside the held-out people's swallows and outside them.
     masks = [swallow_frames(family, s.psi, int(s.subject[1:]), seed, take_seed(s.take), spacing) for s in heldout]
     result["swallow_fraction"] = float(np.concatenate(masks).mean())
     result["swallows_per_minute"] = sum(len(swallow_onsets(m)) for m in masks) / (sum(map(len, masks)) / FPS / 60)
-    plot_heldout(out / family / f"seed{seed}" / "heldout.png", heldout, masks,
+    plot_heldout(work / "heldout.png", heldout, masks,
                  {"transformer": transformer, "ridge": ridge, **({"gru": gru_predictions} if gru else {})})
     for method, predictions in (("transformer", transformer), ("ridge", ridge), ("gru", gru_predictions),
                                 ("mean", means)):
         result[f"{method}_in_swallows"], result[f"{method}_outside"] = split_rmse(predictions, heldout, masks)
-    log(f"  {family} seed {seed} (held out {heldout_name(list(recordings), seed, holdout)}): "
+    trained = "" if training_seed is None else f", training seed {training_seed}"
+    log(f"  {family} seed {seed}{trained} (held out {heldout_name(list(recordings), seed, holdout)}): "
         + ", ".join(f"{k} {v:.5g}" for k, v in result.items()))
     return result
 
@@ -569,6 +577,19 @@ def summarise(results: dict[str, list[dict[str, float]]]) -> str:
         share = (f"{np.mean([r['swallow_fraction'] for r in runs]):.0%}, "
                  f"{np.mean([r['swallows_per_minute'] for r in runs]):.1f}/min")
         lines.append(f"{family:<12}{share:>22}" + "".join(cells))
+    ensembles = {family: runs for family, runs in results.items() if all("member0" in r for r in runs)}
+    if ensembles:
+        lines.append("\nensembles (task.members): transformer / ridge of the ensemble and of its member 0 (the single "
+                     "network of the training seed), mean +- std over the runs; the spread's ratio:")
+        for family, runs in ensembles.items():
+            ridge = np.array([r["ridge"] for r in runs])
+            ensemble, single = np.array([r["transformer"] for r in runs]) / ridge, np.array(
+                [r["member0"] for r in runs]) / ridge
+            members = np.array([[r[k] for k in r if k.startswith("member")] for r in runs]) / ridge[:, None]
+            lines.append(f"{family:<12} ensemble {' '.join(f'{v:.3f}' for v in ensemble)} = {ensemble.mean():.3f} +- "
+                         f"{ensemble.std():.3f}; single {' '.join(f'{v:.3f}' for v in single)} = {single.mean():.3f} "
+                         f"+- {single.std():.3f}; spread ratio {ensemble.std() / max(single.std(), 1e-12):.2f}; "
+                         f"every member {members.mean():.3f} +- {members.std():.3f}")
     return "\n".join(lines)
 
 
@@ -605,8 +626,13 @@ def main() -> None:
     parser.add_argument("--holdout", choices=HOLDOUTS, default="face",
                         help="face: a Live Link Face take is held out (default); any: recording seed mod 3")
     parser.add_argument("--out", default="/tmp/bench_larynx_real", help="work folder (pairs, runs, results.json)")
+    parser.add_argument("--training-seeds", default=None,
+                        help="comma-separated train.py seeds, each run on every benchmark seed (its take, people "
+                             "and pairs): the spread that the training seed alone causes")
     parser.add_argument("--override", action="append", default=[], help="extra train.py overrides (experiments)")
     parser.add_argument("--no-gru", action="store_true", help="skip the GRU baseline (experiments)")
+    parser.add_argument("--resume", action="store_true",
+                        help="keep the runs <out>/results.json holds (the same arguments' first runs) and go on")
     parser.add_argument("--swallow-spacing", default="family",
                         help="family: each family's refractory time (3-5 s; the benchmark); physiological: each "
                              f"person's drawn in {PHYSIOLOGICAL_SPACING[0]:g}-{PHYSIOLOGICAL_SPACING[1]:g} s, about "
@@ -615,6 +641,7 @@ def main() -> None:
     torch.set_num_threads(1)
     families = chosen_families(parser, args.families)
     spacing = swallow_spacing(parser, args.swallow_spacing)
+    training_seeds = [None] if args.training_seeds is None else [int(t) for t in args.training_seeds.split(",")]
     recordings = load_recordings()  # first: a missing recording stops the run before anything is written
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -629,10 +656,15 @@ def main() -> None:
         f"overrides {args.override}, swallow spacing {args.swallow_spacing}, "
         f"load average {os.getloadavg()[0]:.2f}")
     results: dict[str, list[dict[str, float]]] = {}
+    if args.resume and (out / "results.json").is_file():
+        results = {f: runs for f, runs in json.loads((out / "results.json").read_text()).items() if f in families}
+        log(f"resuming: {', '.join(f'{f} {len(runs)} runs' for f, runs in results.items())} kept")
     for family in families:
-        for seed in range(args.first_seed, args.first_seed + args.seeds):
+        done = len(results.get(family, []))
+        runs = [(seed, t) for seed in range(args.first_seed, args.first_seed + args.seeds) for t in training_seeds]
+        for seed, training_seed in runs[done:]:
             results.setdefault(family, []).append(run_one(recordings, family, seed, out, log, args.override,
-                                                          not args.no_gru, args.holdout, spacing))
+                                                          not args.no_gru, args.holdout, spacing, training_seed))
             (out / "results.json").write_text(json.dumps(results, indent=1))
     log("\nheld-out tau RMSE (UV units), mean +- std over seeds:\n" + summarise(results))
 

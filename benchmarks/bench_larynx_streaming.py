@@ -1,6 +1,7 @@
 """Streaming speed of the expression -> larynx transformer on CPU.
 
-    python benchmarks/bench_larynx_streaming.py [--checkpoint runs/.../last.pt] [--far 100000] [--threads 2]
+    python benchmarks/bench_larynx_streaming.py [--checkpoint runs/.../last.pt | --members 5] [--far 100000]
+                                                [--threads 2]
 
 Prints:
 - frames/s of the whole-sequence API (``generate``) and of the live per-frame API (``step``), B = 1;
@@ -11,7 +12,8 @@ Prints:
   frames, the ratio to streaming, and the total time of a 600-frame clip both ways.
 
 Without ``--checkpoint`` the model has the default size (``LarynxTransformerConfig``, the
-``model`` group's schema) and random weights; speed does not depend on the weights.  The CPU may be shared with other
+``model`` group's schema) and random weights, an ensemble of ``--members`` of them (``task.members``' default);
+speed does not depend on the weights.  The CPU may be shared with other
 processes: figures are medians, and the load average is printed beside them.
 """
 from __future__ import annotations
@@ -32,14 +34,18 @@ from timing import frames_per_second  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
 from models.larynx import (  # noqa: E402
     LarynxDataFields,
+    LarynxEnsemble,
     LarynxTransformer,
     LarynxTransformerConfig,
 )
 
 
-def default_model():
+def default_model(members: int):
+    """An ensemble of ``members`` random default-size networks (one network for 1)."""
     torch.manual_seed(0)
-    return LarynxTransformer(LarynxTransformerConfig(), LarynxDataFields(30.0, [], 0.0, 0.01)).eval()
+    networks = [LarynxTransformer(LarynxTransformerConfig(), LarynxDataFields(30.0, [], 0.0, 0.01)).eval()
+                for _ in range(members)]
+    return networks[0] if members == 1 else LarynxEnsemble(networks).eval()
 
 
 def streaming_costs(model, psi: torch.Tensor, positions: list[int], span: int = 500
@@ -96,14 +102,16 @@ def timed(run) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", help="a larynx_transformer checkpoint (default: random default-size model)")
+    parser.add_argument("--members", type=int, default=5, help="without --checkpoint: networks in the ensemble")
     parser.add_argument("--far", type=int, default=100_000, help="farthest frame whose cost is measured")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    model = load_model(args.checkpoint, "larynx_transformer")[0] if args.checkpoint else default_model()
-    cfg = model.config
-    print(f"model: d_model {cfg['d_model']}, {cfg['n_layers']} layers, {cfg['n_heads']} heads, window "
-          f"{cfg['window']}, expression dilations {cfg['expression_dilations']}; "
+    model = load_model(args.checkpoint, "larynx_transformer")[0] if args.checkpoint else default_model(args.members)
+    members = model.config.get("members", [model.config])
+    cfg = members[0]
+    print(f"model: {len(members)} member(s) of d_model {cfg['d_model']}, {cfg['n_layers']} layers, {cfg['n_heads']} "
+          f"heads, window {cfg['window']}, expression dilations {cfg['expression_dilations']}; "
           f"torch threads {args.threads}; load average {os.getloadavg()[0]:.2f}")
     psi = torch.rand(20_000, 55, generator=torch.Generator().manual_seed(0))
 
@@ -128,6 +136,9 @@ def main() -> None:
         cost, threads = best_over_threads(lambda n=prefix: recompute_cost(model, psi, n), args.threads)
         print(f"  prefix {prefix:>5}: {cost * 1e3:8.2f} ms = {cost / costs[100][0]:6.1f} x streaming "
               f"({threads} thread)")
+    if len(members) > 1:
+        print(f"\nload average now {os.getloadavg()[0]:.2f}")
+        return
     clip = psi[None, :600]
     uncached, threads = best_over_threads(lambda: timed(lambda: model.generate_uncached(clip)), args.threads)
     cached = min(timed(lambda: model.generate(clip)) for _ in range(3))

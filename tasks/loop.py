@@ -44,6 +44,7 @@ from tasks.distributed import (
     split_batch,
     to_device,
 )
+from tasks.members import fit_members, trains_members
 from tasks.run_folder import MetricsLog, RunFolder
 from tasks.validation import Validation
 
@@ -73,7 +74,10 @@ def lr_factor(step: int, warmup: int, total: int, min_factor: float) -> float:
 
 def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     """Train the task of ``cfg`` in ``run_dir``; returns the final evaluation (on rank 0; ``{}`` on the
-    other ranks and when ``trainer.stop_after`` ends the run)."""
+    other ranks and when ``trainer.stop_after`` ends the run).  A task of several members trains each in turn
+    (``tasks.members``)."""
+    if trains_members(cfg):
+        return fit_members(cfg, run_dir, fit)
     trainer = to_dataclass(cfg.trainer, where="trainer")
     ranks = launched_ranks()
     if trainer.threads:

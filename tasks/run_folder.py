@@ -136,9 +136,11 @@ class RunFolder:
 def discard_unstarted_run(run_dir: Path) -> None:
     """Remove what hydra wrote into ``run_dir`` (``.hydra/``, the job's log) for a run refused before it saved
     anything, the folder if that leaves it empty, and the folders above it inside the working directory that
-    are left empty (``runs/<task>/`` of a first run): a refused run leaves no half-made run folder."""
-    if (run_dir / "checkpoints").exists() or not run_dir.is_dir():
+    are left empty (``runs/<task>/`` of a first run): a refused run leaves no half-made run folder (nor the
+    folders of an ensemble's members, ``tasks.members``, that saved nothing)."""
+    if not run_dir.is_dir() or any(run_dir.rglob("checkpoints")):
         return
+    shutil.rmtree(run_dir / "members", ignore_errors=True)
     shutil.rmtree(run_dir / ".hydra", ignore_errors=True)
     for log_file in run_dir.glob("*.log"):
         log_file.unlink(missing_ok=True)

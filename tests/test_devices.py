@@ -24,7 +24,8 @@ from tasks.larynx_transformer import Task as LarynxTask
 from tasks.loop import fit
 
 META = torch.device("meta")
-LARYNX = ["task=larynx_transformer", "model.d_model=16", "model.n_heads=2", "model.d_ff=16", "model.window=8",
+LARYNX = ["task=larynx_transformer", "task.members=1", "model.d_model=16", "model.n_heads=2", "model.d_ff=16",
+          "model.window=8",
           "task.crop=16", "task.batch_size=4", "data.train_subjects=2", "data.sequences_per_subject=1",
           "data.heldout_subjects=1", "data.heldout_sequences_per_subject=1", "data.seconds=4"]
 

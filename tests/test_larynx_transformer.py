@@ -527,7 +527,7 @@ def tiny_config(run_overrides=(), data=None):
             "task.eval_batch=16", "task.ridge_lambdas=[1,100,10000]", "trainer.eval_every=0",
             "trainer.early_stopping_patience=null", "trainer.restore_best=false",
             "trainer.checkpoint_every=100000", "trainer.log_every=50", "trainer.progress=false",
-            "optim.warmup_steps=30"]
+            "optim.warmup_steps=30", "task.members=1"]
     data = data if data is not None else ["data.train_subjects=12", "data.sequences_per_subject=4", "data.seconds=20",
                     "data.heldout_subjects=4", "data.heldout_sequences_per_subject=2"]
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base=None):

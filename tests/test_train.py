@@ -75,7 +75,8 @@ def test_resume_refuses_another_config_and_accepts_other_run_control(tmp_path, r
 
 def compose_larynx(*overrides):
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base=None):
-        return compose("train", overrides=["task=larynx_transformer", "trainer.progress=false", *overrides])
+        return compose("train", overrides=["task=larynx_transformer", "task.members=1", "trainer.progress=false",
+                                           *overrides])
 
 
 def test_resume_drops_the_metrics_logged_after_the_checkpoint(tmp_path, monkeypatch):

@@ -160,10 +160,11 @@ def load_pairs(folder: str | os.PathLike, fps: float | None = None) -> list[Lary
     return pairs if fps is None else [p.resampled(fps) for p in pairs]
 
 
-def split_by_take(pairs: list[LarynxSequence], val_fraction: float, seed: int,
-                  what: str = "take") -> tuple[list[LarynxSequence], list[LarynxSequence]]:
+def split_by_take(pairs: list[LarynxSequence], val_fraction: float, seed: int, what: str = "take", fold: int = 0,
+                  folds: int = 1) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
     """(training, validation) pairs, no take on both sides: ``data.splits.split_by_file`` over the takes
-    (``round(val_fraction * takes)`` held out, drawn from ``seed``), each list in the input order.
+    (``round(val_fraction * takes)`` held out, drawn from ``seed``; validation fold ``fold`` of ``folds``),
+    each list in the input order.
 
     With a single take (every file of one recording) the split falls back to files, and says so.
     """
@@ -171,7 +172,7 @@ def split_by_take(pairs: list[LarynxSequence], val_fraction: float, seed: int,
     if len(takes) < 2:
         if len(pairs) >= 2:
             print(f"data.pairs: all {len(pairs)} pair files are one take ('{takes[0]}'): validation by file")
-        return split_by_file(pairs, val_fraction, seed, what.replace("take", "pair file"))
-    _, held = split_by_file(takes, val_fraction, seed, what)
+        return split_by_file(pairs, val_fraction, seed, what.replace("take", "pair file"), fold, folds)
+    _, held = split_by_file(takes, val_fraction, seed, what, fold, folds)
     held = set(held)
     return [p for p in pairs if p.take not in held], [p for p in pairs if p.take in held]

@@ -33,9 +33,10 @@ chosen for that regime on real expressions (``benchmarks/bench_larynx_real.py``;
   than the training takes did can move tau further.
 
 Modules: :mod:`.config` (sizes, data fields), :mod:`.attention`, :mod:`.encoder`, :mod:`.block` (each with the
-per-frame version of its module beside it), :mod:`.folding` (weights laid out for one frame), :mod:`.model` (the
-network, :func:`build_model`, :func:`transfer_weights`, :func:`predict_tau`), :mod:`.streaming`
-(:class:`LarynxStream`), :mod:`.compat` (checkpoints of options this version removed).
+per-frame version of its module beside it), :mod:`.folding` (weights laid out for one frame, the members of an
+ensemble stacked), :mod:`.model` (the network, :func:`build_member`, :func:`transfer_weights`,
+:func:`predict_tau`), :mod:`.ensemble` (K networks averaged, :func:`build_model` for either), :mod:`.streaming`
+(:class:`LarynxStream`, one or K members per call), :mod:`.compat` (checkpoints of options this version removed).
 
 Conventions (shapes carry a batch B and frames T):
 - psi [B,T,55]: expression weights in ``data.expressions.EXPRESSION_NAMES`` order, at
@@ -60,14 +61,16 @@ from .block import Block, BlockFrameWeights, BlockState, block_frame, cross_fram
 from .compat import RemovedOptionError, current_config, removed_options
 from .config import DATA_KEYS, SIZES, LarynxDataFields, LarynxTransformerConfig
 from .encoder import CausalConv, EncoderFrameWeights, EncoderState, ExpressionEncoder, Smoothing, encoder_frame
-from .model import STYLE_TABLES, LarynxTransformer, build_model, predict_tau, transfer_weights
-from .streaming import EncodedFrame, FrameWeights, LarynxStream, tensor_bytes
+from .ensemble import LarynxEnsemble, build_model, ensemble_of, with_subjects
+from .model import STYLE_TABLES, LarynxTransformer, build_member, predict_tau, transfer_weights
+from .streaming import EncodedFrame, FrameWeights, LarynxStream, generate, tensor_bytes
 
 __all__ = [
-    "DATA_KEYS", "SIZES", "STYLE_TABLES", "Block", "BlockFrameWeights", "BlockState", "CausalConv",
-    "CrossAttention", "EncodedFrame", "EncoderFrameWeights", "EncoderState", "ExpressionEncoder", "FrameWeights",
-    "LarynxDataFields", "LarynxStream", "LarynxTransformer", "LarynxTransformerConfig", "RemovedOptionError",
+    "DATA_KEYS", "SIZES", "STYLE_TABLES", "Block", "BlockFrameWeights", "BlockState", "CausalConv", "CrossAttention",
+    "EncodedFrame", "EncoderFrameWeights", "EncoderState", "ExpressionEncoder", "FrameWeights", "LarynxDataFields",
+    "LarynxEnsemble", "LarynxStream", "LarynxTransformer", "LarynxTransformerConfig", "RemovedOptionError",
     "SelfAttention", "Smoothing", "WindowCache", "alibi_slopes", "attend_one", "banded_attention", "block_frame",
-    "build_model", "cross_frame", "current_config", "encoder_frame", "predict_tau", "relative_bias",
-    "removed_options", "step_bias", "tensor_bytes", "transfer_weights",
+    "build_member", "build_model", "cross_frame", "current_config", "encoder_frame", "ensemble_of", "generate",
+    "predict_tau", "relative_bias", "removed_options", "step_bias", "tensor_bytes", "transfer_weights",
+    "with_subjects",
 ]

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 
 from .attention import CrossAttention, SelfAttention, WindowCache, alibi_slopes, attend_one, step_bias
 from .config import LarynxTransformerConfig
-from .folding import affine, linear, normalise
+from .folding import affine, linear, normalise, stacked
 
 
 class Block(nn.Module):
@@ -37,23 +37,27 @@ class Block(nn.Module):
 
 
 class BlockFrameWeights:
-    """A :class:`Block`'s weights for :func:`block_frame` (:mod:`.folding`): each LayerNorm folded into the product
-    after it, the cross-attention's value and output projections multiplied into one."""
+    """The members' :class:`Block` weights for :func:`block_frame`, stacked (:mod:`.folding`): each LayerNorm folded
+    into the product after it, the cross-attention's value and output projections multiplied into one."""
 
-    def __init__(self, block: Block):
-        cross, attention = block.cross, block.attention
+    def __init__(self, blocks: list[Block]):
+        first = blocks[0]
         with torch.no_grad():
-            self.heads = attention.n_heads
-            self.self_eps, self.qkv = block.ln_self.eps, linear(attention.qkv, block.ln_self)
-            self.self_out = linear(attention.out)
-            self.cross = affine(cross.out.weight @ cross.kv.weight, cross.out.weight @ cross.kv.bias + cross.out.bias)
-            self.mlp_eps, self.mlp_in = block.ln_mlp.eps, linear(block.mlp[0], block.ln_mlp)
-            self.mlp_out = linear(block.mlp[2])
+            self.heads = first.attention.n_heads
+            self.self_eps = first.ln_self.eps
+            self.qkv = stacked([linear(b.attention.qkv, b.ln_self) for b in blocks])
+            self.self_out = stacked([linear(b.attention.out) for b in blocks])
+            self.cross = stacked([affine(b.cross.out.weight @ b.cross.kv.weight,
+                                         b.cross.out.weight @ b.cross.kv.bias + b.cross.out.bias) for b in blocks])
+            self.mlp_eps = first.ln_mlp.eps
+            self.mlp_in = stacked([linear(b.mlp[0], b.ln_mlp) for b in blocks])
+            self.mlp_out = stacked([linear(b.mlp[2]) for b in blocks])
 
 
 @dataclass
 class BlockState:
-    """A block's decoding state: its self-attention cache and the biases [B*H,window,1] of one query over it."""
+    """A block's decoding state: its self-attention cache and the biases [K*B*H,window,1] of one query over it
+    (the members' K streams of B are one batch of K*B to the cache)."""
 
     self_cache: WindowCache
     self_bias: Tensor
@@ -67,19 +71,21 @@ class BlockState:
 
 
 def cross_frame(weights: BlockFrameWeights, memory: Tensor) -> Tensor:
-    """The cross-attention's output [B,d] for one frame's encoded expressions memory [B,d]."""
-    return torch.addmm(weights.cross[0], memory, weights.cross[1])
+    """The cross-attention's output [K,B,d] for one frame's encoded expressions memory [K,B,d]."""
+    return torch.baddbmm(weights.cross[0], memory, weights.cross[1])
 
 
 def block_frame(weights: BlockFrameWeights, state: BlockState, x: Tensor, cross: Tensor) -> Tensor:
-    """``Block.forward`` (eval mode) for the next frame: its token x [B,d] and cross-attention output cross [B,d]
-    (:func:`cross_frame`) -> [B,d]; appends the frame's keys and values to ``state``'s cache."""
-    batch = x.shape[0]
-    qkv = torch.addmm(weights.qkv[0], normalise(x, weights.self_eps), weights.qkv[1]).view(batch, 3, weights.heads, -1)
+    """``Block.forward`` (eval mode) of every member for the next frame: its token x [K,B,d] and cross-attention
+    output cross [K,B,d] (:func:`cross_frame`) -> [K,B,d]; appends the frame's keys and values to ``state``'s
+    cache."""
+    members, batch = x.shape[:2]
+    qkv = torch.baddbmm(weights.qkv[0], normalise(x, weights.self_eps), weights.qkv[1])
+    qkv = qkv.view(members * batch, 3, weights.heads, -1)
     keys, values = state.self_cache.append(qkv[:, 1:].transpose(0, 1))
-    attended = attend_one(qkv[:, 0], keys, values, state.self_bias[:, -keys.shape[2]:])
-    x = x + torch.addmm(weights.self_out[0], attended, weights.self_out[1])
+    attended = attend_one(qkv[:, 0], keys, values, state.self_bias[:, -keys.shape[2]:]).view(members, batch, -1)
+    x = x + torch.baddbmm(weights.self_out[0], attended, weights.self_out[1])
     x = x + cross
-    hidden = F.gelu(torch.addmm(weights.mlp_in[0], normalise(x, weights.mlp_eps), weights.mlp_in[1]),
+    hidden = F.gelu(torch.baddbmm(weights.mlp_in[0], normalise(x, weights.mlp_eps), weights.mlp_in[1]),
                     approximate="tanh")
-    return x + torch.addmm(weights.mlp_out[0], hidden, weights.mlp_out[1])
+    return x + torch.baddbmm(weights.mlp_out[0], hidden, weights.mlp_out[1])

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from data.expressions import NUM_EXPRESSIONS
 
 from .config import LarynxTransformerConfig
-from .folding import affine, linear
+from .folding import affine, linear, normalise, stacked
 
 
 class CausalConv(nn.Module):
@@ -81,7 +81,7 @@ class Smoothing(nn.Module):
 class EncoderState:
     """What the expression encoder carries between calls: per convolution its last inputs
     [B,conv.history,d], the recurrent layer's hidden state [1,B,d] and the smoothing's last value [B,d]
-    (None before the first frame)."""
+    (None before the first frame).  A stream's is stacked over the members (:func:`stack_states`)."""
 
     conv: list[Tensor]
     smooth: Tensor | None = None
@@ -134,42 +134,77 @@ class ExpressionEncoder(nn.Module):
 
 
 class EncoderFrameWeights:
-    """An :class:`ExpressionEncoder`'s weights for :func:`encoder_frame` (:mod:`.folding`): each convolution kernel
-    flattened in the order of its taps (oldest first), the GRU's tensors, the low-passes' decays evaluated."""
+    """The members' :class:`ExpressionEncoder` weights for :func:`encoder_frame`, stacked (:mod:`.folding`): each
+    convolution kernel flattened in the order of its taps (oldest first), the GRU's products, the low-passes'
+    decays evaluated."""
 
-    def __init__(self, encoder: ExpressionEncoder):
+    def __init__(self, encoders: list[ExpressionEncoder]):
+        first = encoders[0]
         with torch.no_grad():
-            self.project = linear(encoder.project)
-            # Conv1d weight [C_out,C_in,kernel] -> [C_out, kernel*C_in], matching taps [B,kernel,C_in] flattened
-            self.convs = [(conv.dilation, *affine(conv.conv.weight.permute(0, 2, 1).flatten(1), conv.conv.bias))
-                          for conv in encoder.temporal]
-            r = encoder.recurrent
-            self.recurrent = None if r is None else tuple(
-                p.detach() for p in (r.weight_ih_l0, r.weight_hh_l0, r.bias_ih_l0, r.bias_hh_l0))
-            smoothing = encoder.smoothing
-            self.smoothing = None if smoothing is None else (smoothing.decay().detach(), linear(smoothing.mix))
-            norm = encoder.norm  # its output is the features themselves: not folded
-            self.norm = norm.normalized_shape, norm.weight.detach(), norm.bias.detach(), norm.eps
+            self.project = stacked([linear(e.project) for e in encoders])
+            # Conv1d weight [C_out,C_in,kernel] -> [C_out, kernel*C_in], matching taps [K,B,kernel,C_in] flattened
+            self.convs = [(conv.dilation, *stacked([affine(c.conv.weight.permute(0, 2, 1).flatten(1), c.conv.bias)
+                                                    for c in convs]))
+                          for conv, convs in zip(first.temporal, zip(*(e.temporal for e in encoders)))]
+            self.recurrent = None if first.recurrent is None else (
+                stacked([affine(e.recurrent.weight_ih_l0, e.recurrent.bias_ih_l0) for e in encoders]),
+                stacked([affine(e.recurrent.weight_hh_l0, e.recurrent.bias_hh_l0) for e in encoders]))
+            self.smoothing = None if first.smoothing is None else (
+                torch.stack([e.smoothing.decay().detach() for e in encoders])[:, None],
+                stacked([linear(e.smoothing.mix) for e in encoders]))
+            # The norm's output is the features themselves: its affine part is applied, not folded.
+            self.norm = first.norm.eps
+            self.norm_affine = (torch.stack([e.norm.bias.detach() for e in encoders])[:, None],    # [K,1,d]
+                                torch.stack([e.norm.weight.detach() for e in encoders])[:, None])
+
+
+def gru_frame(weights: tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]], x: Tensor, hidden: Tensor) -> Tensor:
+    """``torch.gru_cell`` for stacked members: x, hidden [K,B,d] -> the next hidden [K,B,d] (PyTorch's GRU:
+    r, z = sigmoid(.), n = tanh(W_in x + b_in + r (W_hn h + b_hn)), h' = (1 - z) n + z h)."""
+    (bias_i, weight_i), (bias_h, weight_h) = weights
+    gates_x = torch.baddbmm(bias_i, x, weight_i)       # [K,B,3d]: r, z, n
+    gates_h = torch.baddbmm(bias_h, hidden, weight_h)
+    d = x.shape[-1]
+    reset_update = torch.sigmoid(gates_x[..., :2 * d] + gates_h[..., :2 * d])
+    candidate = torch.tanh(torch.addcmul(gates_x[..., 2 * d:], reset_update[..., :d], gates_h[..., 2 * d:]))
+    return torch.lerp(candidate, hidden, reset_update[..., d:])
 
 
 def encoder_frame(weights: EncoderFrameWeights, state: EncoderState, psi_t: Tensor) -> tuple[Tensor, EncoderState]:
-    """``ExpressionEncoder.forward`` (eval mode) for the one frame psi_t [B,55] after ``state``: (features [B,d],
-    the state after it)."""
-    x = torch.addmm(weights.project[0], psi_t, weights.project[1])
+    """``ExpressionEncoder.forward`` (eval mode) of every member for the one frame psi_t [B,55] after the stacked
+    ``state`` (:func:`stack_states`): (features [K,B,d], the state after it)."""
+    project_bias, project = weights.project
+    x = torch.baddbmm(project_bias, psi_t.expand(project.shape[0], -1, -1), project)  # [K,B,d]
     conv_history = []
     for (dilation, bias, kernel), history in zip(weights.convs, state.conv):
-        joined = torch.cat([history, x[:, None]], dim=1)  # [B,history+1,d]
-        conv_history.append(joined[:, 1:])
-        x = x + F.gelu(torch.addmm(bias, joined[:, ::dilation].flatten(1), kernel), approximate="tanh")
+        joined = torch.cat([history, x[:, :, None]], dim=2)  # [K,B,history+1,d]
+        conv_history.append(joined[:, :, 1:])
+        x = x + F.gelu(torch.baddbmm(bias, joined[:, :, ::dilation].flatten(2), kernel), approximate="tanh")
     hidden = state.recurrent
     if weights.recurrent is not None:
-        before = x.new_zeros(x.shape) if hidden is None else hidden[0]
-        hidden = torch.gru_cell(x, before, *weights.recurrent)
+        hidden = gru_frame(weights.recurrent, x, torch.zeros_like(x) if hidden is None else hidden)
         x = x + hidden
-        hidden = hidden[None]
     smooth = state.smooth
     if weights.smoothing is not None:
-        decay, mix = weights.smoothing
+        decay, (mix_bias, mix) = weights.smoothing
         smooth = x if smooth is None else torch.lerp(x, smooth, decay)
-        x = x + torch.addmm(mix[0], smooth, mix[1])
-    return F.layer_norm(x, *weights.norm), EncoderState(conv_history, smooth, hidden)
+        x = x + torch.baddbmm(mix_bias, smooth, mix)
+    norm_bias, norm_weight = weights.norm_affine
+    features = torch.addcmul(norm_bias, normalise(x, weights.norm), norm_weight)
+    return features, EncoderState(conv_history, smooth, hidden)
+
+
+def stack_states(states: list[EncoderState]) -> EncoderState:
+    """The members' :class:`EncoderState` (as their modules carry it) -> one stacked state: convolution histories
+    [K,B,history,d], the recurrent state [K,B,d], the smoothed value [K,B,d] (:func:`encoder_frame`'s)."""
+    first = states[0]
+    return EncoderState([torch.stack(history) for history in zip(*(s.conv for s in states))],
+                        None if first.smooth is None else torch.stack([s.smooth for s in states]),
+                        None if first.recurrent is None else torch.cat([s.recurrent for s in states]))
+
+
+def member_state(state: EncoderState, member: int) -> EncoderState:
+    """Member ``member``'s :class:`EncoderState` of a stacked one (:func:`stack_states`), as its module carries it."""
+    return EncoderState([history[member] for history in state.conv],
+                        None if state.smooth is None else state.smooth[member],
+                        None if state.recurrent is None else state.recurrent[member:member + 1])

@@ -1,11 +1,15 @@
-"""Weights laid out for products with a single frame: ``torch.addmm(bias, x, weight_t)``, LayerNorms folded in.
+"""Weights laid out for products with a single frame, LayerNorms folded in, the members of an ensemble stacked.
 
 A live frame is some hundred operations on 64-wide vectors, and each costs its call more than its arithmetic:
 calling a module, or reading a parameter through one, costs as much as a product.  So the per-frame versions of
-the modules (``*_frame`` functions beside each module) compute from plain tensors taken once per stream.
+the modules (``*_frame`` functions beside each module) compute from plain tensors taken once per stream, and the
+K members of an ensemble (:mod:`.ensemble`) run in the same calls: every frame tensor carries the members first,
+x [K,B,...], and a product is ``torch.baddbmm(bias [K,1,out], x [K,B,in], weight_t [K,in,out])``
+(:func:`stacked`), which costs one member's call.  A single model is an ensemble of one.
 """
 from __future__ import annotations
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
@@ -26,6 +30,12 @@ def affine(weight: Tensor, bias: Tensor, norm: nn.LayerNorm | None = None) -> tu
 def linear(layer: nn.Linear, norm: nn.LayerNorm | None = None) -> tuple[Tensor, Tensor]:
     """:func:`affine` of a linear layer (and the LayerNorm before it)."""
     return affine(layer.weight, layer.bias, norm)
+
+
+def stacked(members: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor]:
+    """The members' ``(bias [out], weight_t [in,out])`` (:func:`affine`) -> ``(bias [K,1,out], weight_t [K,in,out])``
+    for ``torch.baddbmm(bias, x [K,B,in], weight_t)``."""
+    return torch.stack([bias for bias, _ in members])[:, None], torch.stack([weight for _, weight in members])
 
 
 def normalise(x: Tensor, eps: float) -> Tensor:

@@ -12,14 +12,13 @@ import torch
 from torch import Tensor, nn
 
 from base.errors import InputError
-from base.threads import single_thread
 from data.expressions import NUM_EXPRESSIONS
 
 from .block import Block
 from .compat import current_config
 from .config import DATA_KEYS, SIZES, LarynxDataFields, LarynxTransformerConfig
 from .encoder import ExpressionEncoder
-from .streaming import LarynxStream
+from .streaming import LarynxStream, generate
 
 
 def constant_encoding(d_model: int) -> Tensor:
@@ -103,24 +102,12 @@ class LarynxTransformer(nn.Module):
         return self.to_tau(self.head(x)[..., 0] * self.output_gain(x.shape[0], subject))
 
     def stream(self, batch_size: int = 1, subject: Tensor | None = None) -> LarynxStream:
-        """A frame-by-frame decoder (see :class:`LarynxStream`)."""
-        return LarynxStream(self, batch_size, subject)
+        """A frame-by-frame decoder (see :class:`LarynxStream`; this model as an ensemble of one)."""
+        return LarynxStream([self], batch_size, subject)
 
-    @torch.inference_mode()
     def generate(self, psi: Tensor, subject: Tensor | None = None, chunk: int = 1024) -> Tensor:
-        """tau [B,T] (UV units) from psi [B,T,55], streamed with the cache (any length).
-
-        The expression side (encoder, cross-attention) is computed ``chunk`` frames at a time, the decoder
-        frame by frame; memory is O(chunk + window) beyond input and output.
-        """
-        stream = self.stream(psi.shape[0], subject)
-        out = torch.empty(psi.shape[:2], dtype=psi.dtype, device=psi.device)
-        for start in range(0, psi.shape[1], chunk):
-            frames = stream.encode(psi[:, start:start + chunk])
-            with single_thread():
-                for t, frame in enumerate(frames):
-                    out[:, start + t] = stream.advance(frame)
-        return self.to_tau(out)
+        """tau [B,T] (UV units) from psi [B,T,55], streamed with the cache (any length; :func:`generate`)."""
+        return generate(self.stream(psi.shape[0], subject), psi, chunk)
 
     @torch.no_grad()
     def generate_uncached(self, psi: Tensor, subject: Tensor | None = None) -> Tensor:
@@ -129,8 +116,8 @@ class LarynxTransformer(nn.Module):
         return torch.stack([self.forward(psi[:, : t + 1], subject)[:, -1] for t in range(psi.shape[1])], dim=1)
 
 
-def build_model(model_config: dict) -> LarynxTransformer:
-    """The model of a checkpoint's ``model_config``: exactly the fields of :class:`LarynxTransformerConfig`
+def build_member(model_config: dict) -> LarynxTransformer:
+    """The network of ``model_config``: exactly the fields of :class:`LarynxTransformerConfig`
     (the sizes) and of :class:`LarynxDataFields` (from the training data), after :mod:`.compat` drops the
     options this version removed (at their neutral values); missing or unknown keys, or sizes the config
     rejects, are a ValueError (a :class:`~models.larynx.compat.RemovedOptionError` for a removed option)."""
@@ -179,11 +166,11 @@ def transfer_weights(model: LarynxTransformer, source: dict[str, Tensor]) -> Non
     model.load_state_dict(merged)
 
 
-def predict_tau(model: LarynxTransformer, psi: np.ndarray, subject: str | None = None) -> np.ndarray:
+def predict_tau(model: nn.Module, psi: np.ndarray, subject: str | None = None) -> np.ndarray:
     """The larynx slide of one recording, streamed (as live decoding would produce it).
 
     Args:
-        model: a trained model.
+        model: a trained :class:`LarynxTransformer` or ensemble of them (:mod:`.ensemble`).
         psi: [T,55] expression weights at ``model.fps``, ``EXPRESSION_NAMES`` order.
         subject: a training subject's name for their style, or None for the average style.
 

@@ -1,4 +1,5 @@
-"""Live decoding of the larynx transformer: one frame at a time, at constant cost per frame and bounded memory.
+"""Live decoding of the larynx transformer or of an ensemble of them: one frame at a time, at constant cost per
+frame and bounded memory.
 
 :class:`LarynxStream` runs the model's ``forward`` frame by frame through the per-frame version of each module,
 written beside it: :func:`~models.larynx.encoder.encoder_frame` (the expression encoder from its carried state),
@@ -18,27 +19,30 @@ from base.threads import single_thread
 from data.expressions import NUM_EXPRESSIONS
 
 from .block import BlockFrameWeights, BlockState, block_frame, cross_frame
-from .encoder import EncoderFrameWeights, encoder_frame
-from .folding import linear
+from .encoder import EncoderFrameWeights, encoder_frame, member_state, stack_states
+from .folding import linear, stacked
 
 if TYPE_CHECKING:
     from .model import LarynxTransformer
 
 
 class FrameWeights:
-    """The weights of one live frame, taken from a model once per :class:`LarynxStream`: the encoder's
-    (:class:`EncoderFrameWeights`), each block's (:class:`BlockFrameWeights`) and the head's."""
+    """The weights of one live frame of every member, taken from the models once per :class:`LarynxStream` and
+    stacked (:mod:`.folding`): the encoder's (:class:`EncoderFrameWeights`), each block's
+    (:class:`BlockFrameWeights`), the head's, and each member's tau normalisation [K,1]."""
 
-    def __init__(self, model: LarynxTransformer):
-        self.encoder = EncoderFrameWeights(model.expression)
-        self.blocks = [BlockFrameWeights(block) for block in model.blocks]
-        self.head = linear(model.head)
+    def __init__(self, members: list[LarynxTransformer]):
+        self.encoder = EncoderFrameWeights([m.expression for m in members])
+        self.blocks = [BlockFrameWeights(list(blocks)) for blocks in zip(*(m.blocks for m in members))]
+        self.head = stacked([linear(m.head) for m in members])
+        self.tau_mean = torch.stack([m.tau_mean for m in members])[:, None]
+        self.tau_scale = torch.stack([m.tau_scale for m in members])[:, None]
 
 
 @dataclass
 class EncodedFrame:
-    """One frame's expression side, computed ahead by :meth:`LarynxStream.encode`: its features [B,d] and per
-    block the cross-attention's output [B,d] (it depends on the expressions alone)."""
+    """One frame's expression side, computed ahead by :meth:`LarynxStream.encode`: the members' features [K,B,d]
+    and per block the cross-attention's output [K,B,d] (it depends on the expressions alone)."""
 
     memory: Tensor
     cross: list[Tensor]
@@ -47,44 +51,52 @@ class EncodedFrame:
 class LarynxStream:
     """Live decoding, one frame at a time, at constant cost per frame and bounded memory.
 
-    ``step(psi_t [B,55]) -> tau_t [B]`` (UV units).  The stream keeps the expression encoder's state
-    (:class:`~models.larynx.encoder.EncoderState`: convolution history, recurrent state, smoothed values) and per
-    block a :class:`BlockState` (a self-attention cache of ``window`` frames).  Nothing in it grows with the
-    position (:func:`tensor_bytes` measures it).
+    ``step(psi_t [B,55]) -> tau_t [B]`` (UV units): the mean of the members' tau (one member for a single
+    model, K for an ensemble, :mod:`.ensemble`), all members computed in the same calls.  The stream keeps the
+    expression encoder's state (:class:`~models.larynx.encoder.EncoderState`: convolution history, recurrent
+    state, smoothed values, stacked over the members) and per block a :class:`BlockState` (a self-attention
+    cache of ``window`` frames).  Nothing in it grows with the position (:func:`tensor_bytes` measures it).
 
-    The frames are computed from ``weights`` (:class:`FrameWeights`), a snapshot of the model's taken when
-    the stream is made: make a new stream after training further.  Many frames given at once
-    (:meth:`encode`, as :meth:`LarynxTransformer.generate` does) run the encoder's modules over all of them;
-    the decoder always runs frame by frame.
+    The frames are computed from ``weights`` (:class:`FrameWeights`), a snapshot of the members' taken when the
+    stream is made: make a new stream after training further.  Many frames given at once (:meth:`encode`, as
+    :func:`generate` does) run the encoder's modules over all of them; the decoder always runs frame by frame.
     """
 
-    def __init__(self, model: LarynxTransformer, batch_size: int = 1, subject: Tensor | None = None):
-        self.model = model
+    def __init__(self, members: list[LarynxTransformer], batch_size: int = 1, subject: Tensor | None = None):
+        self.members = list(members)
         self.batch_size = batch_size
-        cfg = model.cfg
-        weight = next(model.parameters())
-        dtype, device = weight.dtype, weight.device  # the stream lives where the model does
-        self.weights = FrameWeights(model)
+        first = self.members[0]
+        cfg = first.cfg
+        weight = next(first.parameters())
+        dtype, device = weight.dtype, weight.device  # the stream lives where the models do
+        self.weights = FrameWeights(self.members)
         with torch.no_grad():
-            self.token_base = model.token_base(batch_size, subject).to(dtype)  # [B,d]
-            self.gain = model.output_gain(batch_size, subject).to(dtype)  # [B,1]
-        self.blocks = [BlockState.start(batch_size, cfg.n_heads, cfg.d_model // cfg.n_heads, model.window, dtype,
-                                        device) for _ in model.blocks]
-        self.expression_state = model.expression.initial_state(batch_size, dtype)
+            self.token_base = torch.stack([m.token_base(batch_size, subject) for m in self.members]).to(dtype)
+            self.gain = torch.stack([m.output_gain(batch_size, subject) for m in self.members]).to(dtype)  # [K,B,1]
+        count = len(self.members) * batch_size  # the caches see the members' streams as one batch
+        self.blocks = [BlockState.start(count, cfg.n_heads, cfg.d_model // cfg.n_heads, first.window, dtype,
+                                        device) for _ in first.blocks]
+        self.expression_state = stack_states([m.expression.initial_state(batch_size, dtype) for m in self.members])
 
     def state_bytes(self) -> int:
-        """Bytes of the tensors the stream carries from frame to frame: all it holds but its model and its
+        """Bytes of the tensors the stream carries from frame to frame: all it holds but its models and its
         snapshot of the weights (both fixed for the stream's life)."""
-        return tensor_bytes(self, exclude=(self.model, self.weights))
+        return tensor_bytes(self, exclude=(self.members, self.weights))
 
     @torch.inference_mode()
     def encode(self, psi: Tensor) -> list[EncodedFrame]:
         """The expression side of frames psi [B,C,55] that continue the stream, one :class:`EncodedFrame`
-        per frame (computed for all C frames at once, by the model's modules)."""
-        model = self.model
-        memory, self.expression_state = model.expression(psi, self.expression_state)
-        cross = [block.cross(memory).unbind(1) for block in model.blocks]
-        return [EncodedFrame(m, [c[t] for c in cross]) for t, m in enumerate(memory.unbind(1))]
+        per frame (computed for all C frames at once, by each member's modules)."""
+        memories, crosses, states = [], [], []
+        for k, member in enumerate(self.members):
+            memory, state = member.expression(psi, member_state(self.expression_state, k))
+            memories.append(memory)
+            crosses.append([block.cross(memory) for block in member.blocks])
+            states.append(state)
+        self.expression_state = stack_states(states)
+        memory = torch.stack(memories).unbind(2)  # C of [K,B,d]
+        cross = [torch.stack(per_block).unbind(2) for per_block in zip(*crosses)]
+        return [EncodedFrame(m, [c[t] for c in cross]) for t, m in enumerate(memory)]
 
     @torch.inference_mode()
     def encode_frame(self, psi_t: Tensor) -> EncodedFrame:
@@ -95,16 +107,17 @@ class LarynxStream:
 
     @torch.inference_mode()
     def advance(self, frame: EncodedFrame) -> Tensor:
-        """Decode the next frame from its encoded expressions (:meth:`encode`, :meth:`encode_frame`): the
-        decoder's ``forward`` for one frame, from :attr:`weights` and the caches.
+        """Decode the next frame from its encoded expressions (:meth:`encode`, :meth:`encode_frame`): each
+        member's ``forward`` for one frame, from :attr:`weights` and the caches.
 
-        Returns the normalised prediction [B] ((tau - tau_mean) / tau_scale).
+        Returns tau [B] (UV units), the mean over the members.
         """
         x = self.token_base + frame.memory
         for weights, state, cross in zip(self.weights.blocks, self.blocks, frame.cross):
             x = block_frame(weights, state, x, cross)
-        head = self.weights.head
-        return (torch.addmm(head[0], x, head[1]) * self.gain)[:, 0]
+        w = self.weights
+        normalised = (torch.baddbmm(w.head[0], x, w.head[1]) * self.gain)[..., 0]  # [K,B]
+        return torch.addcmul(w.tau_mean, w.tau_scale, normalised).mean(0)
 
     @torch.inference_mode()
     def step(self, psi_t: Tensor) -> Tensor:
@@ -112,8 +125,23 @@ class LarynxStream:
         dtype, device = self.token_base.dtype, self.token_base.device
         psi_t = torch.as_tensor(psi_t, dtype=dtype, device=device).reshape(self.batch_size, NUM_EXPRESSIONS)
         with single_thread():
-            y = self.advance(self.encode_frame(psi_t))
-        return self.model.to_tau(y)
+            return self.advance(self.encode_frame(psi_t))
+
+
+@torch.inference_mode()
+def generate(stream: LarynxStream, psi: Tensor, chunk: int = 1024) -> Tensor:
+    """tau [B,T] (UV units) from psi [B,T,55] through a new ``stream`` of batch B (any length).
+
+    The expression side (encoder, cross-attention) is computed ``chunk`` frames at a time, the decoder
+    frame by frame; memory is O(chunk + window) beyond input and output.
+    """
+    out = torch.empty(psi.shape[:2], dtype=psi.dtype, device=psi.device)
+    for start in range(0, psi.shape[1], chunk):
+        frames = stream.encode(psi[:, start:start + chunk])
+        with single_thread():
+            for t, frame in enumerate(frames):
+                out[:, start + t] = stream.advance(frame)
+    return out
 
 
 def tensor_bytes(root, exclude: tuple = ()) -> int:

@@ -2,7 +2,8 @@
 
 Modules: :mod:`.config` (the hydra schemas of the task, its data kinds and the model sizes), :mod:`.data` (the
 training and validation sequences of ``data=synthetic`` and ``data=pairs``, the crop), :mod:`.baselines` (ridge
-and the RMSE), :mod:`.task` (:class:`Task`: model, batches, loss, evaluation, warm start).
+and the RMSE), :mod:`.task` (:class:`Task`: model, batches, loss, evaluation, warm start; :func:`combine_members`:
+the ensemble of ``task.members`` networks, ``tasks.members``).
 
 Data (``cfg.data``, hydra group ``data``; every sequence is resampled to ``data.fps``; tau in UV units):
 - ``data=synthetic`` (:class:`SyntheticData`): ``data.synthetic_larynx`` sequences.  Validation is
@@ -25,10 +26,11 @@ from .data import (
     usable_sequences,
     with_cues,
 )
-from .task import Task, warm_start
+from .task import Task, combine_members, member_weights, warm_start
 
 __all__ = [
-    "DATA_KINDS", "LarynxTaskConfig", "PairsData", "SyntheticData", "Task", "crop_for", "fit_ridge",
+    "DATA_KINDS", "LarynxTaskConfig", "PairsData", "SyntheticData", "Task", "combine_members", "crop_for",
+    "fit_ridge", "member_weights",
     "load_sequences", "ridge_groups", "rmse", "synthetic_options", "synthetic_training_sequences",
     "usable_sequences", "warm_start", "window_features", "with_cues",
 ]

@@ -35,6 +35,19 @@ class LarynxTaskConfig:
     # Weights to start from instead of a random initialisation: a larynx_transformer checkpoint of the same
     # model sizes, or "pretrained" for the shipped model (trained on data=synthetic); see warm_start.
     init_from: str | None = None
+    # An ensemble of this many networks (tasks.members): member k trains from its own seed (k = 0: ``seed`` itself)
+    # and, on data=pairs, validates on its own fold of the takes (the k-th run of data.val_fraction of them, so
+    # fold 0 is the split of a single network); the run's checkpoint averages them, decoded live as one batched
+    # step.  Single networks' held-out error depends on the seed about as much as on the method
+    # (benchmarks/README.md, "Ensembles over seeds and folds").
+    members: int = 5
+    member: int | None = None     # train this member alone (set for each member by the run; null: all of them)
+
+    def __post_init__(self):
+        if self.members < 1:
+            raise ValueError(f"members is {self.members}, expected at least 1")
+        if self.member is not None and not 0 <= self.member < self.members:
+            raise ValueError(f"member is {self.member}, expected 0 <= member < members ({self.members}) or null")
 
 
 @dataclass

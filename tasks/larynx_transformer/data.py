@@ -25,8 +25,10 @@ from data.synthetic_larynx import (
 from .config import DATA_KINDS, SyntheticData
 
 
-def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
-    """(training, validation) sequences for ``cfg.data``, at ``data.fps``."""
+def load_sequences(data, fold: int = 0, folds: int = 1) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
+    """(training, validation) sequences for ``cfg.data``, at ``data.fps``; ``data=pairs`` validates on fold ``fold``
+    of ``folds`` of the takes (an ensemble's member, :func:`data.splits.split_by_file`), ``data=synthetic`` on its
+    own validation people whatever the fold."""
     kind = data.kind if hasattr(data, "kind") else data["kind"]
     if kind not in DATA_KINDS:
         raise InputError(f"larynx_transformer: data.kind '{kind}' not supported ({' or '.join(DATA_KINDS)})")
@@ -42,7 +44,7 @@ def load_sequences(data) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
                                   **{**options, "ranges": with_cues(heldout_ranges(data.heldout_shift), data)})
         return train, new_takes + new_people
     pairs = load_pairs(data.path, data.fps)
-    return split_by_take(pairs, float(data.val_fraction), int(data.split_seed), f"take in {data.path}")
+    return split_by_take(pairs, float(data.val_fraction), int(data.split_seed), f"take in {data.path}", fold, folds)
 
 
 def with_cues(ranges: GeneratorRanges, data: SyntheticData) -> GeneratorRanges:

@@ -28,7 +28,14 @@ from base.cli import to_dataclass
 from base.errors import InputError
 from data.pairs import LarynxSequence
 from models.checkpoint import load_checkpoint
-from models.larynx import SIZES, LarynxTransformerConfig, build_model, removed_options, transfer_weights
+from models.larynx import (
+    SIZES,
+    LarynxTransformerConfig,
+    build_member,
+    ensemble_of,
+    removed_options,
+    transfer_weights,
+)
 from models.pretrained import default_checkpoint
 
 from .baselines import fit_ridge, rmse, window_features
@@ -36,9 +43,21 @@ from .config import LarynxTaskConfig
 from .data import crop_for, load_sequences, usable_sequences
 
 
-def warm_start(model, init_from: str) -> None:
+def member_weights(state: dict, member: int) -> tuple[dict, dict]:
+    """(model_config, weights) of one network of a checkpoint: itself, or of an ensemble its member
+    ``member`` modulo their number."""
+    config, weights = state["model_config"], state["model"]
+    if "members" not in config:
+        return config, weights
+    k = member % len(config["members"])
+    prefix = f"members.{k}."
+    return config["members"][k], {name[len(prefix):]: v for name, v in weights.items() if name.startswith(prefix)}
+
+
+def warm_start(model, init_from: str, member: int = 0) -> None:
     """Start ``model`` from the weights of ``init_from`` (``task.init_from``): a checkpoint path, or
-    ``pretrained`` for the shipped model.  The per-subject styles start from that model's average person
+    ``pretrained`` for the shipped model; of an ensemble, member ``member`` starts from its member of that
+    number (:func:`member_weights`).  The per-subject styles start from that model's average person
     (:func:`models.larynx.transfer_weights`).  InputError for a checkpoint of another task, of other model
     sizes or of an option this version removed; a note when it was trained at another frame rate (its filters
     are in frames)."""
@@ -47,6 +66,8 @@ def warm_start(model, init_from: str) -> None:
         state = load_checkpoint(path, "larynx_transformer")
     except InputError as e:
         raise InputError(f"task.init_from={init_from}: {e}") from None
+    source_config, source = member_weights(state, member)
+    state = {"model_config": source_config, "model": source}
     removed = removed_options(state["model_config"])
     if removed:
         raise InputError(f"task.init_from={init_from}: {path} was trained with {', '.join(removed)}, removed in "
@@ -64,6 +85,18 @@ def warm_start(model, init_from: str) -> None:
               f"at {fps:g} fps: its filters, counted in frames, start at {source_fps / fps:.2f} times its durations")
 
 
+def combine_members(checkpoints: list[dict], cfg: DictConfig) -> dict:
+    """The ensemble's checkpoint entries (``tasks.members``): ``model_config`` and ``model`` of the
+    :class:`~models.larynx.LarynxEnsemble` of the members' weights (their subject tables joined)."""
+    members = []
+    for state in checkpoints:
+        member = build_member(state["model_config"])
+        member.load_state_dict(state["model"])
+        members.append(member)
+    ensemble = ensemble_of(members)
+    return {"model_config": ensemble.config, "model": ensemble.state_dict()}
+
+
 class Task:
     """See the module docstring; the protocol is in ``tasks/__init__.py``."""
 
@@ -76,7 +109,8 @@ class Task:
         if crop <= sizes.window:
             raise InputError(f"task.crop ({crop}) must exceed model.window ({sizes.window}) so training "
                              f"sees full attention windows")
-        train, self.val = load_sequences(cfg.data)
+        self.member = int(self.settings.member or 0)  # which member of the ensemble this task trains
+        train, self.val = load_sequences(cfg.data, self.member, int(self.settings.members))
         self.crop = crop = crop_for(train, crop, sizes.window)  # frames per training crop
         self.train = usable_sequences(train, crop)  # the model, its normalisation and the baselines see these
         all_tau = np.concatenate([s.tau for s in self.train]).astype(np.float64)
@@ -86,9 +120,9 @@ class Task:
             **OmegaConf.to_container(OmegaConf.structured(sizes), resolve=True), "fps": self.fps,
             "subjects": self.subjects, "tau_mean": self.tau_mean, "tau_scale": float(max(all_tau.std(), 1e-6)),
         }
-        self.model = build_model(self._model_config)
+        self.model = build_member(self._model_config)
         if self.settings.init_from:
-            warm_start(self.model, self.settings.init_from)
+            warm_start(self.model, self.settings.init_from, self.member)
 
         # Training crops are gathered (and interpolated, see batch) from one concatenated array.
         self.psi = torch.from_numpy(np.concatenate([s.psi for s in self.train]))

@@ -1,0 +1,82 @@
+"""Ensembles: a task trained as ``task.members`` networks, each from its own seed and validation fold, and one
+checkpoint that averages them.
+
+A task opts in with the fields ``members`` and ``member`` in its config and a module function
+``combine_members(checkpoints: list[dict], cfg) -> dict`` (the members' best weights -> the ensemble's
+checkpoint entries: ``model_config`` and ``model``).  :func:`fit_members` trains member k as a run of its own,
+``task.member=k`` with :func:`member_seed`, in ``<run>/members/<k>/`` (checkpoints, ``metrics.csv``,
+``eval.json``; ``resume=true`` continues each, and a finished member only repeats its final evaluation), then
+writes the ensemble to ``<run>/checkpoints/best.pt`` and ``last.pt`` (the same file: there is nothing to resume
+in it) and ``<run>/eval.json``: every member's final evaluation and their mean.
+"""
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+import tasks
+from models.checkpoint import load_checkpoint
+from tasks.distributed import launched_ranks
+from tasks.run_folder import RunFolder
+
+
+def member_seed(seed: int, member: int) -> int:
+    """Member 0 trains from ``seed`` itself (a one-member ensemble is the single network of ``seed``); member k > 0
+    from an independent 32-bit seed of ``numpy.random.SeedSequence([seed, k])``, so the members of two seeds
+    share none."""
+    if member == 0:
+        return int(seed)
+    return int(np.random.SeedSequence([int(seed), member]).generate_state(1, np.uint32)[0])
+
+
+def trains_members(cfg: DictConfig) -> bool:
+    """Whether ``cfg`` trains an ensemble (``task.members`` > 1 and no ``task.member`` chosen)."""
+    return int(cfg.task.get("members", 1)) > 1 and cfg.task.get("member") is None
+
+
+def member_config(cfg: DictConfig, member: int) -> DictConfig:
+    """``cfg`` for member ``member`` alone: ``task.member`` set, the seed :func:`member_seed`."""
+    out = copy.deepcopy(cfg)
+    out.task.member = member
+    out.seed = member_seed(int(cfg.seed), member)
+    return out
+
+
+def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, Path], dict]) -> dict[str, float]:
+    """Train every member of ``cfg`` with ``fit_one`` (``tasks.loop.fit``) and write the ensemble (module
+    docstring); returns the ensemble's evaluation: the members' mean of each metric, each member's under
+    ``member<k>_<metric>``."""
+    count, main = int(cfg.task.members), launched_ranks().main
+    evaluations, checkpoints = [], []
+    for k in range(count):
+        member_cfg = member_config(cfg, k)
+        if main:
+            print(f"{cfg.task.name}: member {k + 1} of {count} (seed {member_cfg.seed}, validation fold {k})",
+                  flush=True)
+        member_dir = run_dir / "members" / str(k)
+        evaluations.append(fit_one(member_cfg, member_dir))
+        if not main:  # rank 0 alone writes (tasks.loop)
+            continue
+        member = RunFolder(member_dir, writer=False)
+        checkpoints.append(load_checkpoint(member.best if member.best.is_file() else member.last, cfg.task.name))
+    if not main:
+        return {}
+    folder = RunFolder(run_dir)
+    combined = tasks.task_module(cfg.task.name).combine_members(checkpoints, cfg)
+    state = {"task": cfg.task.name, **combined, "step": max(int(c.get("step", 0)) for c in checkpoints),
+             "config": OmegaConf.to_container(cfg, resolve=True)}
+    folder.save_last(state)
+    folder.save_best(state, float(np.mean([e.get("val_loss", np.nan) for e in evaluations])))
+    keys = sorted({key for e in evaluations for key in e})
+    final = {key: float(np.mean([e[key] for e in evaluations if key in e])) for key in keys}
+    for k, evaluation in enumerate(evaluations):
+        final.update({f"member{k}_{key}": float(value) for key, value in evaluation.items()})
+    folder.write_evaluation(final)
+    means = ", ".join(f"{key} {final[key]:.5g}" for key in ("rmse", "rmse_vs_ridge") if key in final)
+    print(f"{cfg.task.name}: {count} members, each scored on its own validation fold, mean {means}")
+    print(f"checkpoint: {folder.best} (the ensemble of {run_dir / 'members'})")
+    return final

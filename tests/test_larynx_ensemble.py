@@ -1,0 +1,150 @@
+"""Ensembles of larynx transformers (models.larynx.ensemble, tasks.members): members averaged, streamed in one
+batched step, trained on their own seeds and validation folds, written as one checkpoint."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_larynx_transformer import shifted_channel_pairs, tiny_config
+
+from base.errors import InputError
+from data.pairs import LarynxSequence, split_by_take
+from models.checkpoint import load_model, save_checkpoint
+from models.larynx import (
+    LarynxDataFields,
+    LarynxEnsemble,
+    LarynxTransformer,
+    LarynxTransformerConfig,
+    build_model,
+    ensemble_of,
+    predict_tau,
+)
+from tasks.members import member_seed
+
+SIZES = LarynxTransformerConfig(d_model=16, n_heads=2, d_ff=24, window=8, expression_dilations=[1, 2],
+                                smoothing_frames=16.0, dropout=0.0)
+
+
+def member(seed: int, subjects=("anna", "ben"), tau_mean=0.01, tau_scale=0.02) -> LarynxTransformer:
+    """A network with random weights everywhere (the style tables and head too, so members differ in each)."""
+    torch.manual_seed(seed)
+    model = LarynxTransformer(SIZES, LarynxDataFields(30.0, list(subjects), tau_mean, tau_scale))
+    with torch.no_grad():
+        for table in (model.style.weight, model.style_gain.weight, model.head.weight):
+            table.normal_(0.0, 0.3)
+    return model.eval()
+
+
+def test_the_stream_is_the_mean_of_the_members(tmp_path):
+    """Three members of other weights and tau normalisations: the ensemble's streamed tau (generate, frame by
+    frame step, and the whole-sequence forward) is the mean of the members' forward, frame by frame."""
+    members = [member(s, tau_mean=0.01 * s, tau_scale=0.02 + 0.01 * s) for s in range(3)]
+    ensemble = LarynxEnsemble(members).eval()
+    psi = torch.rand(2, 150, 55)
+    subject = torch.tensor([1, 2])
+    expected = torch.stack([m(psi, subject) for m in members]).mean(0)
+    assert torch.allclose(ensemble(psi, subject), expected, atol=1e-6)
+    assert torch.allclose(ensemble.generate(psi, subject, chunk=40), expected, atol=1e-5)
+    stream = ensemble.stream(2, subject)
+    stepped = torch.stack([stream.step(psi[:, t]) for t in range(psi.shape[1])], dim=1)
+    assert torch.allclose(stepped, expected, atol=1e-5)
+    # Members differ: the mean is not any one of them
+    assert min((m(psi, subject) - expected).abs().max().item() for m in members) > 1e-3
+
+
+def test_a_one_member_ensemble_is_its_network():
+    network = member(4)
+    psi = torch.rand(1, 90, 55)
+    assert torch.equal(LarynxEnsemble([network]).generate(psi), network.generate(psi))
+    assert network.stream().state_bytes() * 3 == LarynxEnsemble([member(s) for s in range(3)]).stream().state_bytes()
+
+
+def test_subject_tables_are_joined_and_unknown_subjects_get_the_average_person():
+    """Members trained on other people: the ensemble knows the union; a member that never saw a person gives
+    them its average person (row 0)."""
+    a, b = member(0, ["anna", "ben"]), member(1, ["ben", "cleo"])
+    ensemble = ensemble_of([a, b])
+    assert ensemble.subjects == ["anna", "ben", "cleo"]
+    psi = np.random.default_rng(0).random((80, 55)).astype(np.float32)
+    for name, in_a, in_b in (("anna", "anna", None), ("ben", "ben", "ben"), ("cleo", None, "cleo")):
+        expected = 0.5 * (predict_tau(a, psi, in_a) + predict_tau(b, psi, in_b))
+        assert np.allclose(predict_tau(ensemble, psi, name), expected, atol=1e-6), name
+    with pytest.raises(InputError, match="subject 'dora' was not in the training data"):
+        predict_tau(ensemble, psi, "dora")
+
+
+def test_members_of_other_sizes_are_refused_and_a_bad_ensemble_config_named(tmp_path):
+    other = LarynxTransformer(LarynxTransformerConfig(d_model=32, n_heads=2, window=8),
+                              LarynxDataFields(30.0, ["anna", "ben"], 0.0, 1.0))
+    with pytest.raises(ValueError, match="ensemble member 1 has other sizes than member 0"):
+        LarynxEnsemble([member(0), other])
+    with pytest.raises(ValueError, match="expected 'members' alone, a non-empty list"):
+        build_model({"members": []})
+    save_checkpoint(tmp_path / "bad.pt", {"task": "larynx_transformer", "model_config": {"members": [], "fps": 30},
+                                          "model": {}})
+    with pytest.raises(InputError, match="bad.pt: checkpoint written by an incompatible version.*'members' alone"):
+        load_model(tmp_path / "bad.pt", "larynx_transformer")
+
+
+def test_validation_folds_partition_the_takes_and_fold_zero_is_the_single_split():
+    pairs = [LarynxSequence(np.zeros((10, 55), np.float32), np.zeros(10, np.float32), 30.0, "anna", f"take{t}")
+             for t in range(10) for _ in range(2)]
+    single = split_by_take(pairs, 0.2, 0)[1]
+    folds = [split_by_take(pairs, 0.2, 0, fold=k, folds=5) for k in range(5)]
+    assert [p.take for p in folds[0][1]] == [p.take for p in single]
+    held = [sorted({p.take for p in val}) for _, val in folds]
+    assert all(len(h) == 2 for h in held)
+    assert sorted(t for h in held for t in h) == sorted({p.take for p in pairs})  # each take validated once
+    for train, val in folds:
+        assert not {p.take for p in train} & {p.take for p in val}
+    with pytest.raises(InputError, match="validation fold 5 of 5"):
+        split_by_take(pairs, 0.2, 0, fold=5, folds=5)
+
+
+def test_member_seeds_are_independent_across_training_seeds():
+    """Member 0 is the run of the seed itself; no two members of training seeds 0-9 share a seed."""
+    assert member_seed(7, 0) == 7
+    seeds = [member_seed(s, k) for s in range(10) for k in range(5)]
+    assert len(set(seeds)) == len(seeds)
+
+
+def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp_path, capsys):
+    """train.py task.members=3 on pairs: three runs in members/<k>/ (member 0 the run of the seed itself, each
+    validated on another take), then checkpoints/best.pt holds their ensemble, which predicts their mean and which
+    task.init_from takes member by member.  On takes from a generator shifted in what the larynx ignores, the
+    ensemble beats ridge and is at least as good as its members on average."""
+    from tasks import loop
+    from tasks.larynx_transformer import Task, fit_ridge, rmse, window_features
+
+    shifted_channel_pairs(tmp_path / "pairs", 6, 400, seed=1, other_level=0.2)
+    heldout = shifted_channel_pairs(None, 2, 400, seed=2, other_level=0.7)
+    overrides = ["data=pairs", f"data.path={tmp_path / 'pairs'}", "data.val_fraction=0.2", "task.crop=64",
+                 "model.window=16", "trainer.max_steps=150", "model.dropout=0", "task.members=3"]
+    cfg = tiny_config(overrides, data=[])
+    result = loop.fit(cfg, tmp_path / "run")
+    out = capsys.readouterr().out
+    assert "member 3 of 3" in out and "3 members, each scored on its own validation fold" in out
+    validated = [{s.take for s in Task(tiny_config([*overrides, f"task.member={k}"], data=[])).val} for k in range(3)]
+    assert len(validated[0] | validated[1] | validated[2]) == 3  # each member validates on another take
+    ensemble = load_model(tmp_path / "run" / "checkpoints" / "best.pt", "larynx_transformer")[0]
+    assert isinstance(ensemble, LarynxEnsemble) and len(ensemble.members) == 3
+    single = [load_model(tmp_path / "run" / "members" / str(k) / "checkpoints" / "last.pt")[0] for k in range(3)]
+    predictions = [predict_tau(ensemble, s.psi, "anna") for s in heldout]
+    alone = [[predict_tau(m, s.psi, "anna") for s in heldout] for m in single]
+    assert all(np.allclose(p, np.mean([a[i] for a in alone], axis=0), atol=1e-6) for i, p in enumerate(predictions))
+    assert result["rmse"] == pytest.approx(np.mean([result[f"member{k}_rmse"] for k in range(3)]))
+    # the member of seed 0 and fold 0 is the run task.members=1 gives
+    one = loop.fit(tiny_config([*overrides[:-1], "task.members=1"], data=[]), tmp_path / "one")
+    assert one["rmse"] == pytest.approx(result["member0_rmse"], rel=1e-6)
+
+    train = shifted_channel_pairs(None, 6, 400, seed=1, other_level=0.2)
+    weights, _ = fit_ridge(train, 30, [1.0, 100.0, 1e4])
+    ridge = rmse([window_features(s.psi, 30) @ weights for s in heldout], heldout)
+    ensemble_rmse = rmse(predictions, heldout)
+    assert ensemble_rmse <= np.mean([rmse(a, heldout) for a in alone]) + 1e-9
+    assert ensemble_rmse < ridge, (ensemble_rmse, ridge)
+
+    # task.init_from of an ensemble: member k starts from its member k
+    warm = Task(tiny_config([*overrides, f"task.init_from={tmp_path / 'run' / 'checkpoints' / 'best.pt'}",
+                             "task.member=2"], data=[]))
+    assert torch.equal(warm.model.head.weight, ensemble.members[2].head.weight)
