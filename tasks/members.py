@@ -1,13 +1,16 @@
 """Ensembles: a task trained as ``task.members`` networks, each from its own seed and validation fold, and one
 checkpoint that averages them.
 
-A task opts in with the fields ``members`` and ``member`` in its config and a module function
+A task opts in with the fields ``members`` and ``member`` in its config and the module functions
 ``combine_members(checkpoints: list[dict], cfg) -> dict`` (the members' best weights -> the ensemble's
-checkpoint entries: ``model_config`` and ``model``).  :func:`fit_members` trains member k as a run of its own,
-``task.member=k`` with :func:`member_seed`, in ``<run>/members/<k>/`` (checkpoints, ``metrics.csv``,
-``eval.json``; ``resume=true`` continues each, and a finished member only repeats its final evaluation), then
+checkpoint entries: ``model_config`` and ``model``) and ``evaluate_ensemble(cfg, model) -> dict`` (the
+ensemble's own validation metrics where the members share one validation set, else ``{}``).
+:func:`fit_members` trains member k as a run of its own, ``task.member=k`` with :func:`member_seed`, in
+``<run>/members/<k>/`` (checkpoints, ``metrics.csv``, ``eval.json``; ``resume=true`` continues each, and a
+finished member only repeats its final evaluation), then
 writes the ensemble to ``<run>/checkpoints/best.pt`` and ``last.pt`` (the same file: there is nothing to resume
-in it) and ``<run>/eval.json``: every member's final evaluation and their mean.
+in it) and ``<run>/eval.json``: every member's final evaluation, their mean, and the ensemble's own
+(``ensemble_<metric>``) where the task gives one.
 """
 from __future__ import annotations
 
@@ -19,7 +22,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 import tasks
-from models.checkpoint import load_checkpoint
+from models.checkpoint import MODEL_BUILDERS, load_checkpoint
 from tasks.distributed import launched_ranks
 from tasks.run_folder import RunFolder
 
@@ -66,7 +69,8 @@ def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, P
     if not main:
         return {}
     folder = RunFolder(run_dir)
-    combined = tasks.task_module(cfg.task.name).combine_members(checkpoints, cfg)
+    module = tasks.task_module(cfg.task.name)
+    combined = module.combine_members(checkpoints, cfg)
     state = {"task": cfg.task.name, **combined, "step": max(int(c.get("step", 0)) for c in checkpoints),
              "config": OmegaConf.to_container(cfg, resolve=True)}
     folder.save_last(state)
@@ -75,8 +79,15 @@ def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, P
     final = {key: float(np.mean([e[key] for e in evaluations if key in e])) for key in keys}
     for k, evaluation in enumerate(evaluations):
         final.update({f"member{k}_{key}": float(value) for key, value in evaluation.items()})
+    model = MODEL_BUILDERS[cfg.task.name](combined["model_config"])
+    model.load_state_dict(combined["model"])
+    own = module.evaluate_ensemble(member_config(cfg, 0), model)
+    final.update({f"ensemble_{key}": float(value) for key, value in own.items()})
     folder.write_evaluation(final)
     means = ", ".join(f"{key} {final[key]:.5g}" for key in ("rmse", "rmse_vs_ridge") if key in final)
-    print(f"{cfg.task.name}: {count} members, each scored on its own validation fold, mean {means}")
+    own = ", ".join(f"{key} {final['ensemble_' + key]:.5g}" for key in ("rmse", "rmse_vs_ridge")
+                    if "ensemble_" + key in final)
+    print(f"{cfg.task.name}: {count} members, each scored on its own validation, mean {means}"
+          + (f"; the ensemble: {own}" if own else ""))
     print(f"checkpoint: {folder.best} (the ensemble of {run_dir / 'members'})")
     return final

@@ -123,7 +123,7 @@ def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp
     cfg = tiny_config(overrides, data=[])
     result = loop.fit(cfg, tmp_path / "run")
     out = capsys.readouterr().out
-    assert "member 3 of 3" in out and "3 members, each scored on its own validation fold" in out
+    assert "member 3 of 3" in out and "3 members, each scored on its own validation, mean rmse" in out
     validated = [{s.take for s in Task(tiny_config([*overrides, f"task.member={k}"], data=[])).val} for k in range(3)]
     assert len(validated[0] | validated[1] | validated[2]) == 3  # each member validates on another take
     ensemble = load_model(tmp_path / "run" / "checkpoints" / "best.pt", "larynx_transformer")[0]
@@ -148,3 +148,22 @@ def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp
     warm = Task(tiny_config([*overrides, f"task.init_from={tmp_path / 'run' / 'checkpoints' / 'best.pt'}",
                              "task.member=2"], data=[]))
     assert torch.equal(warm.model.head.weight, ensemble.members[2].head.weight)
+
+
+def test_an_ensemble_of_synthetic_runs_is_scored_on_their_shared_validation(tmp_path):
+    """data=synthetic: every member validates on the same new takes and people, so eval.json also holds the
+    ensemble's own score there (ensemble_rmse), which is the RMSE of its streamed predictions."""
+    from tasks import loop
+    from tasks.larynx_transformer import Task, rmse
+
+    data = ["data.train_subjects=2", "data.sequences_per_subject=1", "data.seconds=8", "data.heldout_subjects=1",
+            "data.heldout_sequences_per_subject=1"]
+    cfg = tiny_config(["trainer.max_steps=4", "task.members=2"], data)
+    result = loop.fit(cfg, tmp_path / "run")
+    ensemble = load_model(tmp_path / "run" / "checkpoints" / "best.pt", "larynx_transformer")[0]
+    task = Task(tiny_config(["trainer.max_steps=4", "task.members=2", "task.member=0"], data))
+    predictions = [predict_tau(ensemble, s.psi, s.subject if s.subject in ensemble.subjects else None)
+                   for s in task.val]
+    assert result["ensemble_rmse"] == pytest.approx(rmse(predictions, task.val), rel=1e-5)
+    assert "ensemble_rmse" not in loop.fit(tiny_config(["trainer.max_steps=4", "task.members=1"], data),
+                                           tmp_path / "one")

@@ -97,6 +97,17 @@ def combine_members(checkpoints: list[dict], cfg: DictConfig) -> dict:
     return {"model_config": ensemble.config, "model": ensemble.state_dict()}
 
 
+def evaluate_ensemble(cfg: DictConfig, ensemble) -> dict[str, float]:
+    """The ensemble's own validation metrics where its members share one validation set (``data=synthetic``);
+    ``{}`` on ``data=pairs``, where each member validates on another fold that the others trained on."""
+    if cfg.data.kind != "synthetic":
+        return {}
+    task = Task(cfg)
+    task.model = ensemble.eval()
+    with torch.no_grad():
+        return task.evaluate(final=True)
+
+
 class Task:
     """See the module docstring; the protocol is in ``tasks/__init__.py``."""
 
