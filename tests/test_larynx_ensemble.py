@@ -52,6 +52,28 @@ def test_the_stream_is_the_mean_of_the_members(tmp_path):
     assert min((m(psi, subject) - expected).abs().max().item() for m in members) > 1e-3
 
 
+def test_streams_share_one_weight_snapshot_until_a_weight_changes():
+    """Streams of the same weights read one snapshot (a phone each in the live receiver); an in-place change of
+    a parameter (an optimiser step) or of a buffer gives the next stream a new snapshot, and the streams made
+    before decode as they did."""
+    ensemble = LarynxEnsemble([member(s) for s in range(2)]).eval()
+    psi = torch.rand(1, 20, 55)
+    first, second = ensemble.stream(), ensemble.stream()
+    assert first.weights is second.weights
+    before = torch.stack([first.step(psi[:, t]) for t in range(20)])
+    with torch.no_grad():
+        ensemble.members[1].head.weight.mul_(2.0)
+    changed = ensemble.stream()
+    assert changed.weights is not first.weights
+    after = torch.stack([changed.step(psi[:, t]) for t in range(20)])
+    assert (after - before).abs().max().item() > 1e-4
+    assert torch.allclose(torch.stack([second.step(psi[:, t]) for t in range(20)]), before, atol=1e-7)
+    ensemble.members[0].tau_mean.add_(0.5)
+    shifted = ensemble.stream()
+    assert shifted.weights is not changed.weights
+    assert torch.allclose(torch.stack([shifted.step(psi[:, t]) for t in range(20)]), after + 0.25, atol=1e-5)
+
+
 def test_a_one_member_ensemble_is_its_network():
     network = member(4)
     psi = torch.rand(1, 90, 55)
