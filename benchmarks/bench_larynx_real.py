@@ -510,10 +510,14 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     transformer_seconds = time.perf_counter() - started
     model = load_model(checkpoint, "larynx_transformer")[0]
     transformer = [predict_tau(model, s.psi, s.subject) for s in heldout]  # as infer.py subject=...
-    # An ensemble's members alone (member 0 is the single network of the training seed: task.members=1)
-    members = {}
+    # An ensemble's members alone (member 0 is the single network of the training seed: task.members=1), and the
+    # ensembles of its first k members (``first<k>``, 1 < k < K: what fewer members would have scored)
+    members, alone = {}, []
     for k, member in enumerate(getattr(model, "members", [])):
-        members[f"member{k}"] = rmse([predict_tau(member, s.psi, s.subject) for s in heldout], heldout)
+        alone.append([predict_tau(member, s.psi, s.subject) for s in heldout])
+        members[f"member{k}"] = rmse(alone[-1], heldout)
+    for k in range(2, len(alone)):
+        members[f"first{k}"] = rmse([np.mean(taus, axis=0) for taus in zip(*alone[:k])], heldout)
     average_style = [predict_tau(model, s.psi) for s in heldout]           # infer.py without subject
     window = int(round(task.settings.ridge_window * FPS))
     weights, lam = fit_ridge(train_pairs, window, list(task.settings.ridge_lambdas))
@@ -587,9 +591,16 @@ def summarise(results: dict[str, list[dict[str, float]]]) -> str:
                 [r["member0"] for r in runs]) / ridge
             members = np.array([[r[k] for k in r if k.startswith("member")] for r in runs]) / ridge[:, None]
             lines.append(f"{family:<12} ensemble {' '.join(f'{v:.3f}' for v in ensemble)} = {ensemble.mean():.3f} +- "
-                         f"{ensemble.std():.3f}; single {' '.join(f'{v:.3f}' for v in single)} = {single.mean():.3f} "
-                         f"+- {single.std():.3f}; spread ratio {ensemble.std() / max(single.std(), 1e-12):.2f}; "
-                         f"every member {members.mean():.3f} +- {members.std():.3f}")
+                         f"{ensemble.std():.3f} (range {np.ptp(ensemble):.3f}); single "
+                         f"{' '.join(f'{v:.3f}' for v in single)} = {single.mean():.3f} +- {single.std():.3f} (range "
+                         f"{np.ptp(single):.3f}); spread ratio {ensemble.std() / max(single.std(), 1e-12):.2f} (std), "
+                         f"{np.ptp(ensemble) / max(np.ptp(single), 1e-12):.2f} (range); every member "
+                         f"{members.mean():.3f} +- {members.std():.3f}")
+            for key in sorted({k for r in runs for k in r if k.startswith("first")}, key=lambda k: int(k[5:])):
+                fewer = np.array([r[key] for r in runs]) / ridge
+                lines.append(f"{'':<12} the first {key[5:]} members {' '.join(f'{v:.3f}' for v in fewer)} = "
+                             f"{fewer.mean():.3f} +- {fewer.std():.3f} (range {np.ptp(fewer):.3f}); spread ratio "
+                             f"{fewer.std() / max(single.std(), 1e-12):.2f} (std)")
     return "\n".join(lines)
 
 
