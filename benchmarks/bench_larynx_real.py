@@ -68,7 +68,7 @@ from data.pairs import LarynxSequence, save_pair  # noqa: E402
 from data.synthetic_larynx import run_length  # noqa: E402
 from data.synthetic_tau import SwallowShape, swallow_profile  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
-from models.larynx import predict_tau  # noqa: E402
+from models.larynx import predict_tau, trimmed_mean  # noqa: E402
 from tasks.larynx_transformer import Task, fit_ridge, rmse, window_features  # noqa: E402
 from tasks.loop import fit, lr_factor, step_seeds  # noqa: E402
 
@@ -517,7 +517,8 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
         alone.append([predict_tau(member, s.psi, s.subject) for s in heldout])
         members[f"member{k}"] = rmse(alone[-1], heldout)
     for k in range(2, len(alone)):
-        members[f"first{k}"] = rmse([np.mean(taus, axis=0) for taus in zip(*alone[:k])], heldout)
+        members[f"first{k}"] = rmse([trimmed_mean(torch.as_tensor(np.stack(taus))).numpy() for taus in zip(*alone[:k])],
+                                    heldout)
     average_style = [predict_tau(model, s.psi) for s in heldout]           # infer.py without subject
     window = int(round(task.settings.ridge_window * FPS))
     weights, lam = fit_ridge(train_pairs, window, list(task.settings.ridge_lambdas))

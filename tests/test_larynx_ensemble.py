@@ -18,6 +18,7 @@ from models.larynx import (
     build_model,
     ensemble_of,
     predict_tau,
+    trimmed_mean,
 )
 from tasks.members import member_seed
 
@@ -35,14 +36,17 @@ def member(seed: int, subjects=("anna", "ben"), tau_mean=0.01, tau_scale=0.02) -
     return model.eval()
 
 
-def test_the_stream_is_the_mean_of_the_members(tmp_path):
-    """Three members of other weights and tau normalisations: the ensemble's streamed tau (generate, frame by
-    frame step, and the whole-sequence forward) is the mean of the members' forward, frame by frame."""
-    members = [member(s, tau_mean=0.01 * s, tau_scale=0.02 + 0.01 * s) for s in range(3)]
+def test_the_stream_is_the_trimmed_mean_of_the_members(tmp_path):
+    """Four members of other weights and tau normalisations: the ensemble's streamed tau (generate, frame by
+    frame step, and the whole-sequence forward) is, frame by frame, the mean of the two members' forward left
+    when the lowest and the highest are dropped."""
+    members = [member(s, tau_mean=0.01 * s, tau_scale=0.02 + 0.01 * s) for s in range(4)]
     ensemble = LarynxEnsemble(members).eval()
     psi = torch.rand(2, 150, 55)
     subject = torch.tensor([1, 2])
-    expected = torch.stack([m(psi, subject) for m in members]).mean(0)
+    taus = torch.stack([m(psi, subject) for m in members])  # [4,B,T]
+    low, high = taus.min(0).values, taus.max(0).values
+    expected = (taus.sum(0) - low - high) / 2
     assert torch.allclose(ensemble(psi, subject), expected, atol=1e-6)
     assert torch.allclose(ensemble.generate(psi, subject, chunk=40), expected, atol=1e-5)
     stream = ensemble.stream(2, subject)
@@ -50,6 +54,15 @@ def test_the_stream_is_the_mean_of_the_members(tmp_path):
     assert torch.allclose(stepped, expected, atol=1e-5)
     # Members differ: the mean is not any one of them
     assert min((m(psi, subject) - expected).abs().max().item() for m in members) > 1e-3
+
+
+def test_a_member_far_off_the_others_moves_the_ensemble_little():
+    """Per frame the lowest and the highest member are dropped (K >= 3): a member 100x off leaves the mean of the
+    middle three; two members are averaged, one is itself."""
+    tau = torch.tensor([[1.0, 0.0], [2.0, 0.1], [3.0, 0.2], [100.0, -50.0], [2.5, 0.3]])  # [K=5, frames=2]
+    assert torch.allclose(trimmed_mean(tau), torch.tensor([2.5, 0.1]))
+    assert torch.allclose(trimmed_mean(tau[:2]), torch.tensor([1.5, 0.05]))
+    assert torch.equal(trimmed_mean(tau[3:4]), tau[3])
 
 
 def test_streams_share_one_weight_snapshot_until_a_weight_changes():
@@ -153,7 +166,8 @@ def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp
     single = [load_model(tmp_path / "run" / "members" / str(k) / "checkpoints" / "last.pt")[0] for k in range(3)]
     predictions = [predict_tau(ensemble, s.psi, "anna") for s in heldout]
     alone = [[predict_tau(m, s.psi, "anna") for s in heldout] for m in single]
-    assert all(np.allclose(p, np.mean([a[i] for a in alone], axis=0), atol=1e-6) for i, p in enumerate(predictions))
+    # three members: the trimmed mean is each frame's middle member
+    assert all(np.allclose(p, np.median([a[i] for a in alone], axis=0), atol=1e-6) for i, p in enumerate(predictions))
     assert result["rmse"] == pytest.approx(np.mean([result[f"member{k}_rmse"] for k in range(3)]))
     # the member of seed 0 and fold 0 is the run task.members=1 gives
     one = loop.fit(tiny_config([*overrides[:-1], "task.members=1"], data=[]), tmp_path / "one")

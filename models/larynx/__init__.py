@@ -63,14 +63,14 @@ from .config import DATA_KEYS, SIZES, LarynxDataFields, LarynxTransformerConfig
 from .encoder import CausalConv, EncoderFrameWeights, EncoderState, ExpressionEncoder, Smoothing, encoder_frame
 from .ensemble import LarynxEnsemble, build_model, ensemble_of, with_subjects
 from .model import STYLE_TABLES, LarynxTransformer, build_member, predict_tau, transfer_weights
-from .streaming import EncodedFrame, FrameWeights, LarynxStream, generate, tensor_bytes
+from .streaming import EncodedFrame, FrameWeights, LarynxStream, frame_weights, generate, tensor_bytes, trimmed_mean
 
 __all__ = [
     "DATA_KEYS", "SIZES", "STYLE_TABLES", "Block", "BlockFrameWeights", "BlockState", "CausalConv", "CrossAttention",
     "EncodedFrame", "EncoderFrameWeights", "EncoderState", "ExpressionEncoder", "FrameWeights", "LarynxDataFields",
     "LarynxEnsemble", "LarynxStream", "LarynxTransformer", "LarynxTransformerConfig", "RemovedOptionError",
     "SelfAttention", "Smoothing", "WindowCache", "alibi_slopes", "attend_one", "banded_attention", "block_frame",
-    "build_member", "build_model", "cross_frame", "current_config", "encoder_frame", "ensemble_of", "generate",
-    "predict_tau", "relative_bias", "removed_options", "step_bias", "tensor_bytes", "transfer_weights",
-    "with_subjects",
+    "build_member", "build_model", "cross_frame", "current_config", "encoder_frame", "ensemble_of", "frame_weights",
+    "generate", "predict_tau", "relative_bias", "removed_options", "step_bias", "tensor_bytes", "transfer_weights",
+    "trimmed_mean", "with_subjects",
 ]

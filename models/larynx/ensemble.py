@@ -1,11 +1,13 @@
 """An ensemble of larynx transformers: K members of the same sizes, trained from different seeds (and validation
-folds), whose tau is averaged.
+folds), whose tau is averaged frame by frame without the lowest and the highest member
+(:func:`~models.larynx.streaming.trimmed_mean`).
 
 Which weights a run ends with depends on its seed and on the takes that chose its best step; on a new recording
 that decides much of the error (``benchmarks/README.md``, "Expression -> larynx").  The mean of members trained
-from independent seeds keeps what they share and averages away what the seed adds.  The members decode in the
-same calls (:class:`~models.larynx.streaming.LarynxStream`: every frame tensor carries the members first), so a
-live frame costs about one member's.
+from independent seeds keeps what they share and averages away what the seed adds; dropping the lowest and the
+highest per frame keeps one member that went astray (its validation fold held the takes it needed) out of it.
+The members decode in the same calls (:class:`~models.larynx.streaming.LarynxStream`: every frame tensor carries
+the members first), so a live frame of five costs about 1.5 of one member's.
 
 The members share the subject table: rows are the union of their subjects, and a member that never trained on a
 subject gives it its average person (:func:`with_subjects`).  Each keeps its own tau normalisation.
@@ -16,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from .model import STYLE_TABLES, LarynxTransformer, build_member
-from .streaming import LarynxStream, generate
+from .streaming import LarynxStream, generate, trimmed_mean
 
 
 class LarynxEnsemble(nn.Module):
@@ -51,8 +53,8 @@ class LarynxEnsemble(nn.Module):
         return self.members[0].subject_index(subject)
 
     def forward(self, psi: Tensor, subject: Tensor | None = None) -> Tensor:
-        """tau [B,T] (UV units): the members' mean (:meth:`LarynxTransformer.forward`)."""
-        return torch.stack([member(psi, subject) for member in self.members]).mean(0)
+        """tau [B,T] (UV units): the members' (:meth:`LarynxTransformer.forward`) :func:`trimmed_mean`."""
+        return trimmed_mean(torch.stack([member(psi, subject) for member in self.members]))
 
     def stream(self, batch_size: int = 1, subject: Tensor | None = None) -> LarynxStream:
         """A frame-by-frame decoder of all members at once (:class:`LarynxStream`)."""

@@ -40,6 +40,20 @@ class FrameWeights:
         self.tau_scale = torch.stack([m.tau_scale for m in members])[:, None]
 
 
+def trimmed_mean(tau: Tensor) -> Tensor:
+    """The ensemble's tau from its members' tau [K,...]: per frame, the mean of the members after dropping the
+    lowest and the highest (K >= 3; the plain mean for K <= 2, a single model's tau itself for K = 1).
+
+    A member validates on a fold of the takes that the others train on; the fold that holds the takes going
+    furthest leaves its member extrapolating on a recording that goes as far, and that member alone can sit far
+    off the others (1.6-1.9 of ridge where the rest score 0.6-0.9, ``benchmarks/README.md``, "Ensembles over
+    seeds and folds").  Dropping the extremes frame by frame keeps the ensemble from following it.
+    """
+    if tau.shape[0] < 3:
+        return tau.mean(0)
+    return tau.sort(dim=0).values[1:-1].mean(0)
+
+
 # members[0] -> (the members' parameters and their versions, the FrameWeights taken from them)
 _SNAPSHOTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -70,11 +84,12 @@ class EncodedFrame:
 class LarynxStream:
     """Live decoding, one frame at a time, at constant cost per frame and bounded memory.
 
-    ``step(psi_t [B,55]) -> tau_t [B]`` (UV units): the mean of the members' tau (one member for a single
-    model, K for an ensemble, :mod:`.ensemble`), all members computed in the same calls.  The stream keeps the
-    expression encoder's state (:class:`~models.larynx.encoder.EncoderState`: convolution history, recurrent
-    state, smoothed values, stacked over the members) and per block a :class:`BlockState` (a self-attention
-    cache of ``window`` frames).  Nothing in it grows with the position (:func:`tensor_bytes` measures it).
+    ``step(psi_t [B,55]) -> tau_t [B]`` (UV units): the members' tau combined by :func:`trimmed_mean` (one
+    member for a single model, K for an ensemble, :mod:`.ensemble`), all members computed in the same calls.
+    The stream keeps the expression encoder's state (:class:`~models.larynx.encoder.EncoderState`: convolution
+    history, recurrent state, smoothed values, stacked over the members) and per block a :class:`BlockState` (a
+    self-attention cache of ``window`` frames).  Nothing in it grows with the position (:func:`tensor_bytes`
+    measures it).
 
     The frames are computed from ``weights`` (:class:`FrameWeights`), a snapshot of the members' taken when the
     stream is made and shared with the other streams of the same weights (:func:`frame_weights`): make a new
@@ -130,14 +145,14 @@ class LarynxStream:
         """Decode the next frame from its encoded expressions (:meth:`encode`, :meth:`encode_frame`): each
         member's ``forward`` for one frame, from :attr:`weights` and the caches.
 
-        Returns tau [B] (UV units), the mean over the members.
+        Returns tau [B] (UV units), the members' :func:`trimmed_mean`.
         """
         x = self.token_base + frame.memory
         for weights, state, cross in zip(self.weights.blocks, self.blocks, frame.cross):
             x = block_frame(weights, state, x, cross)
         w = self.weights
         normalised = (torch.baddbmm(w.head[0], x, w.head[1]) * self.gain)[..., 0]  # [K,B]
-        return torch.addcmul(w.tau_mean, w.tau_scale, normalised).mean(0)
+        return trimmed_mean(torch.addcmul(w.tau_mean, w.tau_scale, normalised))
 
     @torch.inference_mode()
     def step(self, psi_t: Tensor) -> Tensor:
