@@ -110,8 +110,12 @@ def read_audio(path: str | os.PathLike, key: str = "audio") -> AudioTrack:
             with open(path, "rb") as f:
                 rate, data = wavfile.read(f)
             samples = _to_float(np.asarray(data))
-        except (ValueError, OSError, EOFError):
-            samples = None  # a WAV codec scipy does not know (ADPCM, ...), or not a WAV: ffmpeg decides
+        except (ValueError, OSError, EOFError) as e:
+            # a WAV codec scipy does not know (ADPCM, ...), or not a WAV: ffmpeg decides, where there is one
+            if shutil.which("ffmpeg") is None or shutil.which("ffprobe") is None:
+                raise InputError(f"{path}: not a readable audio file as PCM WAV ({e}); a WAV in another codec needs "
+                                 f"the ffmpeg and ffprobe executables (Debian package ffmpeg), which are not on "
+                                 f"PATH") from None
         else:
             _check_rate(path, int(rate))
     if samples is None:
