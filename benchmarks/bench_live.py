@@ -29,9 +29,6 @@ from motion.live.config import LiveConfig  # noqa: E402
 from motion.live.receiver import LiveReceiver  # noqa: E402
 
 
-SPIN = os.environ.get("SPIN") == "1"
-
-
 def run(phones: int, seconds: float, config: LiveConfig) -> dict:
     models = live_models(config, announce=lambda *_: None)
     receiver = LiveReceiver(models, stream_options(config), "127.0.0.1", 0, config.max_phones,
@@ -44,7 +41,7 @@ def run(phones: int, seconds: float, config: LiveConfig) -> dict:
                                 cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
                for k in range(phones)]
     try:
-        receiver.run(None, lambda: all(p.poll() is not None for p in senders), status_seconds=0, spin=SPIN)
+        receiver.run(None, lambda: all(p.poll() is not None for p in senders), status_seconds=0)
         receiver.run(0.5, lambda: False, status_seconds=0)  # the last datagrams in flight
     finally:
         for p in senders:

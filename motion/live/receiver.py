@@ -112,23 +112,15 @@ class LiveReceiver:
         self.flush()
         return handled
 
-    def wait(self, timeout: float, spin: bool = False) -> bool:
-        """Wait up to ``timeout`` seconds for a datagram; whether one is there (``spin``: polling the socket
-        without sleeping)."""
-        if spin:
-            end = time.perf_counter() + timeout
-            while time.perf_counter() < end:
-                if select.select([self.sock], [], [], 0)[0]:
-                    return True
-            return False
+    def wait(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds for a datagram; whether one is there."""
         try:
             ready, _, _ = select.select([self.sock], [], [], max(timeout, 0.0))
         except InterruptedError:
             return False
         return bool(ready)
 
-    def run(self, duration: float | None, should_stop, tick: float = 0.002, status_seconds: float = 5.0,
-            spin: bool = False) -> None:
+    def run(self, duration: float | None, should_stop, tick: float = 0.002, status_seconds: float = 5.0) -> None:
         """Drain the socket every tick until ``should_stop()`` or ``duration`` seconds; a status line every
         ``status_seconds`` (frames/s, rejected, latency)."""
         start = time.monotonic()
@@ -137,7 +129,7 @@ class LiveReceiver:
             now = time.monotonic()
             if duration is not None and now - start >= duration:
                 break
-            if self.wait(tick, spin):
+            if self.wait(tick):
                 self.drain()
             if status_seconds and now - last_status >= status_seconds:
                 self.announce(self.status_line((self.received - last_received) / (now - last_status)))
