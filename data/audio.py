@@ -64,17 +64,22 @@ def _to_float(data: np.ndarray) -> np.ndarray:
     return data.astype(np.float32)
 
 
-def _ffmpeg(path: Path, what: str) -> tuple[str, str]:
+def _ffmpeg(path: Path, what: str, wav_error: Exception | None = None) -> tuple[str, str]:
+    """The ffmpeg and ffprobe executables; InputError without them (``wav_error``: why scipy could not read the
+    .wav that needed them)."""
     ffmpeg, ffprobe = shutil.which("ffmpeg"), shutil.which("ffprobe")
     if ffmpeg is None or ffprobe is None:
+        if wav_error is not None:
+            raise InputError(f"{path}: not a readable audio file as PCM WAV ({wav_error}); a WAV in another codec "
+                             f"needs the ffmpeg and ffprobe executables (Debian package ffmpeg), which are not on PATH")
         raise InputError(f"{path}: decoding {what} needs the ffmpeg and ffprobe executables (Debian package "
                          f"ffmpeg), which are not on PATH; install ffmpeg or give a .wav file")
     return ffmpeg, ffprobe
 
 
-def _decode(path: Path) -> tuple[np.ndarray, int]:
-    """Samples and rate of the first audio stream of ``path`` through ffmpeg."""
-    ffmpeg, ffprobe = _ffmpeg(path, f"'{path.suffix}' audio")
+def _decode(path: Path, wav_error: Exception | None = None) -> tuple[np.ndarray, int]:
+    """Samples and rate of the first audio stream of ``path`` through ffmpeg (``wav_error``: see :func:`_ffmpeg`)."""
+    ffmpeg, ffprobe = _ffmpeg(path, f"'{path.suffix}' audio", wav_error)
     probe = subprocess.run([ffprobe, "-v", "error", "-select_streams", "a:0", "-show_entries",
                             "stream=sample_rate,channels", "-of", "json", str(path)], capture_output=True, text=True)
     if probe.returncode != 0:
@@ -102,7 +107,7 @@ def _check_rate(path: Path, rate: int) -> None:
 def read_audio(path: str | os.PathLike, key: str = "audio") -> AudioTrack:
     """The mono audio of ``path`` (``key`` is the config key that named it, for the error messages)."""
     path = require_file(path, "audio file", key)
-    samples = None
+    samples, wav_error = None, None
     if path.suffix.lower() == ".wav":
         from scipy.io import wavfile
 
@@ -111,15 +116,11 @@ def read_audio(path: str | os.PathLike, key: str = "audio") -> AudioTrack:
                 rate, data = wavfile.read(f)
             samples = _to_float(np.asarray(data))
         except (ValueError, OSError, EOFError) as e:
-            # a WAV codec scipy does not know (ADPCM, ...), or not a WAV: ffmpeg decides, where there is one
-            if shutil.which("ffmpeg") is None or shutil.which("ffprobe") is None:
-                raise InputError(f"{path}: not a readable audio file as PCM WAV ({e}); a WAV in another codec needs "
-                                 f"the ffmpeg and ffprobe executables (Debian package ffmpeg), which are not on "
-                                 f"PATH") from None
+            wav_error = e  # a WAV codec scipy does not know (ADPCM, ...), or not a WAV: ffmpeg decides
         else:
             _check_rate(path, int(rate))
     if samples is None:
-        samples, rate = _decode(path)
+        samples, rate = _decode(path, wav_error)
     if len(samples) == 0:
         raise InputError(f"{path}: the sound track is empty; expected audio")
     if not np.isfinite(samples).all():

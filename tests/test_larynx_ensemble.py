@@ -85,6 +85,9 @@ def test_streams_share_one_weight_snapshot_until_a_weight_changes():
     shifted = ensemble.stream()
     assert shifted.weights is not changed.weights
     assert torch.allclose(torch.stack([shifted.step(psi[:, t]) for t in range(20)]), after + 0.25, atol=1e-5)
+    ensemble.double()  # cast in place of the same parameters: a new snapshot in float64
+    cast = ensemble.stream()
+    assert cast.weights is not shifted.weights and cast.weights.head[1].dtype == torch.float64
 
 
 def test_a_one_member_ensemble_is_its_network():

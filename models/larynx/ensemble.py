@@ -22,7 +22,7 @@ from .streaming import LarynxStream, generate, trimmed_mean
 
 
 class LarynxEnsemble(nn.Module):
-    """tau from psi as the mean of ``members``' (see the module docstring); the interface of
+    """tau from psi as the trimmed mean of ``members``' (see the module docstring); the interface of
     :class:`LarynxTransformer` (``fps``, ``window``, ``subjects``, :meth:`subject_index`, ``forward``, :meth:`stream`,
     :meth:`generate`), so :func:`~models.larynx.model.predict_tau`, ``infer.py`` and the live receiver take either.
 

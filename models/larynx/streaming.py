@@ -62,8 +62,10 @@ def frame_weights(members: list[LarynxTransformer]) -> FrameWeights:
     """The :class:`FrameWeights` of ``members``, one snapshot shared by every stream made while their parameters
     are unchanged (a phone per stream reads the same weights, which stay in the CPU's cache: four streams of an
     ensemble step about 30% faster than with a copy each); a parameter or buffer changed since (an optimiser
-    step, a loaded state: its version counter moves) gives a new snapshot, and streams made before keep theirs."""
-    key = tuple((id(t), t._version) for member in members for t in (*member.parameters(), *member.buffers()))
+    step, a loaded state: its version counter moves; moved or cast: its storage) gives a new snapshot, and streams
+    made before keep theirs."""
+    key = tuple((id(t), t.data_ptr(), t.dtype, t._version)  # moved or cast (``.to``): other storage
+                for member in members for t in (*member.parameters(), *member.buffers()))
     cached = _SNAPSHOTS.get(members[0])
     if cached is not None and cached[0] == key:
         return cached[1]
