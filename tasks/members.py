@@ -11,10 +11,18 @@ finished member only repeats its final evaluation), then
 writes the ensemble to ``<run>/checkpoints/best.pt`` and ``last.pt`` (the same file: there is nothing to resume
 in it) and ``<run>/eval.json``: every member's final evaluation, their mean, and the ensemble's own
 (``ensemble_<metric>``) where the task gives one.
+
+Refitting: a task whose members validate on folds of their own training data may define ``refits(cfg) -> bool``
+(true: refit) and the config field ``task.refit_steps``.  Member k's fold then only chooses how long it trains
+(its ``best_step``): the member trains again from its own seed on all the data, validation fold included, for that
+many steps with the learning-rate schedule ending there and no validation (:func:`refit_config`), in
+``<run>/members/<k>/refit/``; the ensemble takes those weights.  Each member's figures in ``eval.json`` stay its
+fold's (the refit has no held-out data left to score on).
 """
 from __future__ import annotations
 
 import copy
+import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -49,11 +57,25 @@ def member_config(cfg: DictConfig, member: int) -> DictConfig:
     return out
 
 
+def refit_config(cfg: DictConfig, steps: int) -> DictConfig:
+    """``cfg`` (a member's) for its refit: ``task.refit_steps`` and ``trainer.max_steps`` ``steps``, no validation
+    during training, no early stopping, the last weights kept."""
+    out = copy.deepcopy(cfg)
+    out.task.refit_steps = int(steps)
+    out.trainer.max_steps = int(steps)
+    out.trainer.eval_every = 0
+    out.trainer.early_stopping_patience = None
+    out.trainer.restore_best = False
+    return out
+
+
 def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, Path], dict]) -> dict[str, float]:
     """Train every member of ``cfg`` with ``fit_one`` (``tasks.loop.fit``) and write the ensemble (module
     docstring); returns the ensemble's evaluation: the members' mean of each metric, each member's under
     ``member<k>_<metric>``."""
     count, main = int(cfg.task.members), launched_ranks().main
+    module = tasks.task_module(cfg.task.name)
+    refits = getattr(module, "refits", lambda _: False)(cfg)
     evaluations, checkpoints = [], []
     for k in range(count):
         member_cfg = member_config(cfg, k)
@@ -62,6 +84,15 @@ def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, P
                   flush=True)
         member_dir = run_dir / "members" / str(k)
         evaluations.append(fit_one(member_cfg, member_dir))
+        if refits and RunFolder(member_dir, writer=False).evaluation.is_file():  # not when stop_after ended it
+            # Every rank reads rank 0's evaluation (written before the ranks left the member's process group).
+            steps = int(json.loads(RunFolder(member_dir, writer=False).evaluation.read_text())["best_step"])
+            if main:
+                print(f"{cfg.task.name}: member {k + 1} refits on all the data for {steps} steps (its best on fold "
+                      f"{k})", flush=True)
+            member_dir = member_dir / "refit"
+            fit_one(refit_config(member_cfg, steps), member_dir)
+            evaluations[-1]["refit_steps"] = float(steps)
         if not main:  # rank 0 alone writes (tasks.loop)
             continue
         member = RunFolder(member_dir, writer=False)
@@ -69,7 +100,6 @@ def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, P
     if not main:
         return {}
     folder = RunFolder(run_dir)
-    module = tasks.task_module(cfg.task.name)
     combined = module.combine_members(checkpoints, cfg)
     state = {"task": cfg.task.name, **combined, "step": max(int(c.get("step", 0)) for c in checkpoints),
              "config": OmegaConf.to_container(cfg, resolve=True)}

@@ -148,7 +148,8 @@ def test_member_seeds_are_independent_across_training_seeds():
 
 def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp_path, capsys):
     """train.py task.members=3 on pairs: three runs in members/<k>/ (member 0 the run of the seed itself, each
-    validated on another take), then checkpoints/best.pt holds their ensemble, which predicts their mean and which
+    validated on another take), each refit on every take for its best step in members/<k>/refit/, then
+    checkpoints/best.pt holds the ensemble of the refits, which predicts their trimmed mean and which
     task.init_from takes member by member.  On takes from a generator shifted in what the larynx ignores, the
     ensemble beats ridge and is at least as good as its members on average."""
     from tasks import loop
@@ -157,7 +158,8 @@ def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp
     shifted_channel_pairs(tmp_path / "pairs", 6, 400, seed=1, other_level=0.2)
     heldout = shifted_channel_pairs(None, 2, 400, seed=2, other_level=0.7)
     overrides = ["data=pairs", f"data.path={tmp_path / 'pairs'}", "data.val_fraction=0.2", "task.crop=64",
-                 "model.window=16", "trainer.max_steps=150", "model.dropout=0", "task.members=3"]
+                 "model.window=16", "trainer.max_steps=150", "trainer.eval_every=30", "trainer.restore_best=true",
+                 "model.dropout=0", "task.members=3"]
     cfg = tiny_config(overrides, data=[])
     result = loop.fit(cfg, tmp_path / "run")
     out = capsys.readouterr().out
@@ -166,7 +168,17 @@ def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp
     assert len(validated[0] | validated[1] | validated[2]) == 3  # each member validates on another take
     ensemble = load_model(tmp_path / "run" / "checkpoints" / "best.pt", "larynx_transformer")[0]
     assert isinstance(ensemble, LarynxEnsemble) and len(ensemble.members) == 3
-    single = [load_model(tmp_path / "run" / "members" / str(k) / "checkpoints" / "last.pt")[0] for k in range(3)]
+    takes = {s.take for s in Task(tiny_config(overrides, data=[])).train} | validated[0]
+    for k in range(3):  # a refit trains on every take, for as many steps as its fold chose
+        steps = result[f"member{k}_best_step"]
+        assert result[f"member{k}_refit_steps"] == steps and 30 <= steps <= 150 and steps % 30 == 0
+        refit = Task(tiny_config([*overrides, f"task.member={k}", f"task.refit_steps={int(steps)}"], data=[]))
+        assert {s.take for s in refit.train} == takes and len(takes) == 6
+        state = torch.load(tmp_path / "run" / "members" / str(k) / "refit" / "checkpoints" / "last.pt",
+                           weights_only=True)
+        assert state["step"] == steps and state["config"]["trainer"]["eval_every"] == 0
+    single = [load_model(tmp_path / "run" / "members" / str(k) / "refit" / "checkpoints" / "last.pt")[0]
+              for k in range(3)]
     predictions = [predict_tau(ensemble, s.psi, "anna") for s in heldout]
     alone = [[predict_tau(m, s.psi, "anna") for s in heldout] for m in single]
     # three members: the trimmed mean is each frame's middle member
@@ -191,7 +203,8 @@ def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp
 
 def test_an_ensemble_of_synthetic_runs_is_scored_on_their_shared_validation(tmp_path):
     """data=synthetic: every member validates on the same new takes and people, so eval.json also holds the
-    ensemble's own score there (ensemble_rmse), which is the RMSE of its streamed predictions."""
+    ensemble's own score there (ensemble_rmse), which is the RMSE of its streamed predictions; no member refits
+    (its validation is no training data), and a refit asked for is refused by name."""
     from tasks import loop
     from tasks.larynx_transformer import Task, rmse
 
@@ -206,3 +219,7 @@ def test_an_ensemble_of_synthetic_runs_is_scored_on_their_shared_validation(tmp_
     assert result["ensemble_rmse"] == pytest.approx(rmse(predictions, task.val), rel=1e-5)
     assert "ensemble_rmse" not in loop.fit(tiny_config(["trainer.max_steps=4", "task.members=1"], data),
                                            tmp_path / "one")
+    assert not (tmp_path / "run" / "members" / "0" / "refit").exists() and "member0_refit_steps" not in result
+    with pytest.raises(InputError, match=r"task.refit_steps=4: a refit trains on the validation takes of "
+                                         r"data=pairs; data=synthetic validates on data of its own"):
+        Task(tiny_config(["task.refit_steps=4"], data))

@@ -26,10 +26,11 @@ from .data import (
     usable_sequences,
     with_cues,
 )
-from .task import Task, combine_members, evaluate_ensemble, member_weights, warm_start
+from .task import Task, combine_members, evaluate_ensemble, member_weights, refits, warm_start
 
 __all__ = [
     "DATA_KINDS", "LarynxTaskConfig", "PairsData", "SyntheticData", "Task", "combine_members", "crop_for",
-    "evaluate_ensemble", "fit_ridge", "member_weights", "load_sequences", "ridge_groups", "rmse", "synthetic_options",
-    "synthetic_training_sequences", "usable_sequences", "warm_start", "window_features", "with_cues",
+    "evaluate_ensemble", "fit_ridge", "member_weights", "load_sequences", "refits", "ridge_groups", "rmse",
+    "synthetic_options", "synthetic_training_sequences", "usable_sequences", "warm_start", "window_features",
+    "with_cues",
 ]

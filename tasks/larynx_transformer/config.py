@@ -42,12 +42,19 @@ class LarynxTaskConfig:
     # (benchmarks/README.md, "Ensembles over seeds and folds").
     members: int = 5
     member: int | None = None     # train this member alone (set for each member by the run; null: all of them)
+    # An ensemble (members > 1) on data=pairs, where each member's validation fold is taken from the training takes:
+    # the fold only chooses how many steps the member trains (its best step), then the member trains again on every
+    # take for that many steps (tasks.members, "Refitting"), so no member goes without the takes of its fold.
+    refit: bool = True
+    refit_steps: int | None = None  # set by the run for a member's refit: train on every take for this many steps
 
     def __post_init__(self):
         if self.members < 1:
             raise ValueError(f"members is {self.members}, expected at least 1")
         if self.member is not None and not 0 <= self.member < self.members:
             raise ValueError(f"member is {self.member}, expected 0 <= member < members ({self.members}) or null")
+        if self.refit_steps is not None and self.refit_steps < 1:
+            raise ValueError(f"refit_steps is {self.refit_steps}, expected at least 1 or null")
 
 
 @dataclass

@@ -97,6 +97,12 @@ def combine_members(checkpoints: list[dict], cfg: DictConfig) -> dict:
     return {"model_config": ensemble.config, "model": ensemble.state_dict()}
 
 
+def refits(cfg: DictConfig) -> bool:
+    """Whether the members refit on all the data after their folds chose their lengths (``tasks.members``):
+    ``task.refit`` on ``data=pairs`` (``data=synthetic`` validates on people of its own, not on training data)."""
+    return bool(cfg.task.get("refit", False)) and cfg.data.kind == "pairs"
+
+
 def evaluate_ensemble(cfg: DictConfig, ensemble) -> dict[str, float]:
     """The ensemble's own validation metrics where its members share one validation set (``data=synthetic``);
     ``{}`` on ``data=pairs``, where each member validates on another fold that the others trained on."""
@@ -122,6 +128,11 @@ class Task:
                              f"sees full attention windows")
         self.member = int(self.settings.member or 0)  # which member of the ensemble this task trains
         train, self.val = load_sequences(cfg.data, self.member, int(self.settings.members))
+        if self.settings.refit_steps is not None:  # a member's refit (tasks.members): its fold is training data too
+            if cfg.data.kind != "pairs":
+                raise InputError(f"task.refit_steps={self.settings.refit_steps}: a refit trains on the validation "
+                                 f"takes of data=pairs; data={cfg.data.kind} validates on data of its own")
+            train = train + self.val
         self.crop = crop = crop_for(train, crop, sizes.window)  # frames per training crop
         self.train = usable_sequences(train, crop)  # the model, its normalisation and the baselines see these
         all_tau = np.concatenate([s.tau for s in self.train]).astype(np.float64)
