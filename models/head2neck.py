@@ -114,12 +114,15 @@ def split_head_rotation(head_rotations: torch.Tensor, rest: torch.Tensor, split:
 
 
 @functools.lru_cache(maxsize=8)
-def _invivo_constants(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The in-vivo prior's start shares, end shares [4 directions, J] and head range [4] (radians), built once
-    per dtype and device."""
+def _invivo_constants(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, ...]:
+    """The in-vivo prior's start shares and half their change to the end shares [4 directions, J], the head
+    range [4] (radians) and each direction's axis [4] (x: flexion and extension, y: axial, z: lateral), built
+    once per dtype and device."""
     start = torch.tensor(START_SHARES, dtype=dtype, device=device)
-    end = 2.0 * torch.tensor(FULL_SHARES, dtype=dtype, device=device) - start
-    return start, end, torch.deg2rad(torch.tensor(HEAD_RANGE_DEG, dtype=dtype, device=device))
+    half_change = torch.tensor(FULL_SHARES, dtype=dtype, device=device) - start  # (end - start) / 2
+    axis = torch.zeros(4, dtype=torch.long, device=device)
+    axis[AXIAL], axis[LAT] = 1, 2
+    return start, half_change, torch.deg2rad(torch.tensor(HEAD_RANGE_DEG, dtype=dtype, device=device)), axis
 
 
 def invivo_shares(components: torch.Tensor) -> torch.Tensor:
@@ -130,15 +133,12 @@ def invivo_shares(components: torch.Tensor) -> torch.Tensor:
     or extension by the sign, y: axial rotation, z: lateral bending) the share of a motion of size
     ``m = mean_j |u_jc| / T_c`` (T the default head range) is ``s0 + (s1 - s0) min(m, 1) / 2``.
     """
-    start, end, head_range = _invivo_constants(components.dtype, components.device)
+    start, half_change, head_range, axis = _invivo_constants(components.dtype, components.device)
     size = components.abs().mean(1)                                               # [B,3]
-
-    def shares(direction: int, axis: int) -> torch.Tensor:                        # [B,J]
-        m = (size[:, axis:axis + 1] / head_range[direction]).clamp(max=1.0)
-        return start[direction] + (end[direction] - start[direction]) * m / 2
-
-    sagittal = torch.where(components[..., 0] >= 0, shares(FLEX, 0), shares(EXT, 0))
-    return torch.stack([sagittal, shares(AXIAL, 1), shares(LAT, 2)], dim=-1)
+    # All four directions at once (one frame of the live receiver is a few dozen such calls).
+    shares = start + half_change * (size[:, axis] / head_range).clamp(max=1.0)[..., None]   # [B,4,J]
+    sagittal = torch.where(components[..., 0] >= 0, shares[:, FLEX], shares[:, EXT])
+    return torch.stack([sagittal, shares[:, AXIAL], shares[:, LAT]], dim=-1)
 
 
 # ----------------------------------------------------------------------------- the MLP
@@ -292,7 +292,8 @@ def _euler_limits_np(margin: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iterations: int = 3,
-                    tolerance_deg: float = 1e-3, damping: float = 1e-8, margin: float = 1.0) -> torch.Tensor:
+                    tolerance_deg: float = 1e-3, damping: float = 1e-8, margin: float = 1.0,
+                    rest: torch.Tensor | None = None) -> torch.Tensor:
     """Spread the residual between the chain's head orientation and the target over the joints.
 
     theta [B,J,3] (anatomical frames), head_rotations [B,3,3] (target) -> theta [B,J,3] (anatomical
@@ -302,19 +303,22 @@ def correct_to_head(theta: torch.Tensor, head_rotations: torch.Tensor, rig, iter
     the Euler-rate axes (:func:`euler_rate_axes`) the Jacobian of the head's world rotation vector is
     ``M_j E_j``.  Computed in float64 numpy on 3x3 matrices: a step is a few dozen small array operations,
     where torch's per-call cost made one frame take ~5 ms (the live receiver's budget; bench_live.py).
-    Not differentiable (training's losses use :func:`chain_head_rotation`).
+    ``rest``: ``rig.anatomical_rest_rotations`` when the caller has them.  Not differentiable (training's losses
+    use :func:`chain_head_rotation`).
     """
     chain = chain_to(rig.parents, len(rig.parents) - 1)
-    rest = rig.anatomical_rest_rotations[chain].detach().cpu().numpy().astype(np.float64)      # C_j [K,3,3]
+    rest = rig.anatomical_rest_rotations if rest is None else rest
+    rest = rest[chain].detach().cpu().numpy().astype(np.float64)                               # C_j [K,3,3]
     lower, upper = (limit[chain] for limit in _euler_limits_np(margin))
     target = head_rotations.detach().cpu().numpy().astype(np.float64)                          # [B,3,3]
     out = theta.detach().cpu().numpy().astype(np.float64)
     euler = np.clip(axis_angle_to_euler_np(out[:, chain]), lower, upper)                        # [B,K,3]
     eye = damping * np.eye(3)
+    identity = np.repeat(np.eye(3)[None], len(target), axis=0)
     tolerance = math.radians(tolerance_deg)
     for step in range(iterations + 1):
         world = rest @ euler_to_matrix_np(euler) @ rest.transpose(0, 2, 1)                      # C_j R_j C_j^T
-        prefix = [np.broadcast_to(np.eye(3), target.shape)]                                    # Q_parent(j)
+        prefix = [identity]                                                                     # Q_parent(j)
         for k in range(len(chain)):
             prefix.append(prefix[-1] @ world[:, k])
         # rho: the world rotation taking the chain's head to the target, log(H Q^T)
@@ -359,5 +363,6 @@ def predict_theta(model: Head2NeckMLP, rig, head_rotations: torch.Tensor, iterat
     if head_rotations.ndim != 3 or head_rotations.shape[1:] != (3, 3):
         raise InputError(f"head_rotations has shape {list(head_rotations.shape)}, expected [T,3,3]")
     rest = rig.anatomical_rest_rotations
-    out = [correct_to_head(model(part, rest), part, rig, iterations) for part in head_rotations.split(chunk)]
+    out = [correct_to_head(model(part, rest), part, rig, iterations, rest=rest)
+           for part in head_rotations.split(chunk)]
     return rig.from_anatomical(torch.cat(out)) if out else head_rotations.new_zeros(0, model.num_joints, 3)
