@@ -519,6 +519,7 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     for k in range(2, len(alone)):
         members[f"first{k}"] = rmse([trimmed_mean(torch.as_tensor(np.stack(taus))).numpy() for taus in zip(*alone[:k])],
                                     heldout)
+    members.update(fold_weights_scores(run_dir, heldout))
     average_style = [predict_tau(model, s.psi) for s in heldout]           # infer.py without subject
     window = int(round(task.settings.ridge_window * FPS))
     weights, lam = fit_ridge(train_pairs, window, list(task.settings.ridge_lambdas))
@@ -556,6 +557,26 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     log(f"  {family} seed {seed}{trained} (held out {heldout_name(list(recordings), seed, holdout)}): "
         + ", ".join(f"{k} {v:.5g}" for k, v in result.items()))
     return result
+
+
+def fold_weights_scores(run_dir: Path, heldout: list[LarynxSequence]) -> dict[str, float]:
+    """Where the members refit (``task.refit``, ``tasks.members``): the held-out RMSE of each member's weights
+    before its refit (``fold_member<k>``: chosen on its validation fold; member 0's are the network
+    ``task.members=1`` trains) and of their trimmed mean (``fold_ensemble``), the ensemble without refitting,
+    from the same runs; ``{}`` without refits."""
+    folders = sorted((run_dir / "members").glob("*/refit"), key=lambda f: int(f.parent.name))
+    if not folders:
+        return {}
+    scores, alone = {}, []
+    for refit in folders:
+        checkpoints = refit.parent / "checkpoints"
+        best = checkpoints / "best.pt"
+        member = load_model(best if best.is_file() else checkpoints / "last.pt", "larynx_transformer")[0]
+        alone.append([predict_tau(member, s.psi, s.subject) for s in heldout])
+        scores[f"fold_member{refit.parent.name}"] = rmse(alone[-1], heldout)
+    scores["fold_ensemble"] = rmse([trimmed_mean(torch.as_tensor(np.stack(taus))).numpy() for taus in zip(*alone)],
+                                   heldout)
+    return scores
 
 
 def summarise(results: dict[str, list[dict[str, float]]]) -> str:
@@ -597,6 +618,12 @@ def summarise(results: dict[str, list[dict[str, float]]]) -> str:
                          f"{np.ptp(single):.3f}); spread ratio {ensemble.std() / max(single.std(), 1e-12):.2f} (std), "
                          f"{np.ptp(ensemble) / max(np.ptp(single), 1e-12):.2f} (range); every member "
                          f"{members.mean():.3f} +- {members.std():.3f}")
+            if all("fold_ensemble" in r for r in runs):  # the same runs' members before their refits
+                before, first = (np.array([r[k] for r in runs]) / ridge for k in ("fold_ensemble", "fold_member0"))
+                lines.append(f"{'':<12} without refit: ensemble {' '.join(f'{v:.3f}' for v in before)} = "
+                             f"{before.mean():.3f} +- {before.std():.3f}; member 0 (task.members=1) "
+                             f"{' '.join(f'{v:.3f}' for v in first)} = {first.mean():.3f} +- {first.std():.3f}; the "
+                             f"refit ensemble's spread / member 0's {ensemble.std() / max(first.std(), 1e-12):.2f}")
             for key in sorted({k for r in runs for k in r if k.startswith("first")}, key=lambda k: int(k[5:])):
                 fewer = np.array([r[key] for r in runs]) / ridge
                 lines.append(f"{'':<12} the first {key[5:]} members {' '.join(f'{v:.3f}' for v in fewer)} = "

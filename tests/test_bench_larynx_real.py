@@ -122,3 +122,19 @@ def test_the_ensemble_summary_compares_the_spread_with_the_single_networks():
     assert "spread ratio 0.10 (std), 0.10 (range)" in line
     first = next(row for row in text.splitlines() if "the first 2 members" in row)
     assert "0.700 0.750 0.700 0.700 = 0.712" in first and "spread ratio 0.19 (std)" in first
+
+
+def test_the_summary_gives_the_same_runs_without_refit():
+    """Refit members: the ensemble of the members' weights before their refits (fold_ensemble) and member 0's
+    before it (the network task.members=1 trains) are summarised from the same runs, with the refit ensemble's
+    spread against that member 0's: 0.0112 / 0.0500 = 0.22."""
+    runs = [{"transformer": e, "ridge": 1.0, "member0": 0.7, "fold_ensemble": f, "fold_member0": f0,
+             "transformer_average_style": e, "gru": np.nan, "mean": 1.0, "swallow_fraction": 0.1,
+             "swallows_per_minute": 2.0, **{f"{m}_{part}": 0.5 for m in ("transformer", "ridge", "gru", "mean")
+                                            for part in ("in_swallows", "outside")}}
+            for e, f, f0 in ((0.70, 0.80, 0.50), (0.72, 0.82, 0.60), (0.71, 0.84, 0.50), (0.73, 0.86, 0.60))]
+    text = bench.summarise({"damped": runs})
+    line = next(row for row in text.splitlines() if "without refit" in row)
+    assert "ensemble 0.800 0.820 0.840 0.860 = 0.830 +- 0.022" in line
+    assert "member 0 (task.members=1) 0.500 0.600 0.500 0.600 = 0.550 +- 0.050" in line
+    assert "spread / member 0's 0.22" in line
