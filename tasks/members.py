@@ -6,8 +6,9 @@ A task opts in with the fields ``members`` and ``member`` in its config and the 
 checkpoint entries: ``model_config`` and ``model``) and ``evaluate_ensemble(cfg, model) -> dict`` (the
 ensemble's own validation metrics where the members share one validation set, else ``{}``).
 :func:`fit_members` trains member k as a run of its own, ``task.member=k`` with :func:`member_seed`, in
-``<run>/members/<k>/`` (checkpoints, ``metrics.csv``, ``eval.json``; ``resume=true`` continues each, and a
-finished member only repeats its final evaluation), then
+``<run>/members/<k>/`` (checkpoints, ``metrics.csv``, ``eval.json``; ``resume=true`` continues each, starts
+those never started, and a finished member only repeats its final evaluation; ``trainer.stop_after`` ends the
+run at the member it stops), then
 writes the ensemble to ``<run>/checkpoints/best.pt`` and ``last.pt`` (the same file: there is nothing to resume
 in it) and ``<run>/eval.json``: every member's final evaluation, their mean, and the ensemble's own
 (``ensemble_<metric>``) where the task gives one.
@@ -69,6 +70,16 @@ def refit_config(cfg: DictConfig, steps: int) -> DictConfig:
     return out
 
 
+def started(cfg: DictConfig, folder: Path) -> DictConfig:
+    """``cfg`` for the run in ``folder``: with ``resume=true`` a member (or refit) that never saved a checkpoint
+    there starts afresh, the others continue."""
+    if not cfg.resume or RunFolder(folder, writer=False).last.exists():
+        return cfg
+    out = copy.deepcopy(cfg)
+    out.resume = False
+    return out
+
+
 def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, Path], dict]) -> dict[str, float]:
     """Train every member of ``cfg`` with ``fit_one`` (``tasks.loop.fit``) and write the ensemble (module
     docstring); returns the ensemble's evaluation: the members' mean of each metric, each member's under
@@ -83,15 +94,19 @@ def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, P
             print(f"{cfg.task.name}: member {k + 1} of {count} (seed {member_cfg.seed}, validation fold {k})",
                   flush=True)
         member_dir = run_dir / "members" / str(k)
-        evaluations.append(fit_one(member_cfg, member_dir))
-        if refits and RunFolder(member_dir, writer=False).evaluation.is_file():  # not when stop_after ended it
+        evaluations.append(fit_one(started(member_cfg, member_dir), member_dir))
+        if not RunFolder(member_dir, writer=False).evaluation.is_file():  # trainer.stop_after ended it
+            return {}
+        if refits:
             # Every rank reads rank 0's evaluation (written before the ranks left the member's process group).
             steps = int(json.loads(RunFolder(member_dir, writer=False).evaluation.read_text())["best_step"])
             if main:
                 print(f"{cfg.task.name}: member {k + 1} refits on all the data for {steps} steps (its best on fold "
                       f"{k})", flush=True)
             member_dir = member_dir / "refit"
-            fit_one(refit_config(member_cfg, steps), member_dir)
+            fit_one(started(refit_config(member_cfg, steps), member_dir), member_dir)
+            if not RunFolder(member_dir, writer=False).evaluation.is_file():
+                return {}
             evaluations[-1]["refit_steps"] = float(steps)
         if not main:  # rank 0 alone writes (tasks.loop)
             continue

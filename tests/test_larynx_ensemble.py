@@ -20,7 +20,7 @@ from models.larynx import (
     predict_tau,
     trimmed_mean,
 )
-from tasks.members import member_seed
+from tasks.members import member_config, member_seed, refit_config
 
 SIZES = LarynxTransformerConfig(d_model=16, n_heads=2, d_ff=24, window=8, expression_dilations=[1, 2],
                                 smoothing_frames=16.0, dropout=0.0)
@@ -223,3 +223,31 @@ def test_an_ensemble_of_synthetic_runs_is_scored_on_their_shared_validation(tmp_
     with pytest.raises(InputError, match=r"task.refit_steps=4: a refit trains on the validation takes of "
                                          r"data=pairs; data=synthetic validates on data of its own"):
         Task(tiny_config(["task.refit_steps=4"], data))
+
+
+def test_resuming_an_ensemble_continues_its_members_and_starts_the_ones_never_started(tmp_path):
+    """An ensemble stopped after its first member (its refit half done, the second member never started):
+    resume=true finishes the refit, trains the second member, and gives the uninterrupted run's weights."""
+    import shutil
+
+    from tasks import loop
+
+    shifted_channel_pairs(tmp_path / "pairs", 4, 200, seed=1, other_level=0.2)
+    overrides = ["data=pairs", f"data.path={tmp_path / 'pairs'}", "data.val_fraction=0.5", "task.crop=48",
+                 "model.window=16", "trainer.max_steps=20", "trainer.eval_every=10", "trainer.restore_best=true",
+                 "trainer.checkpoint_every=5", "model.dropout=0", "task.members=2"]
+    loop.fit(tiny_config(overrides, data=[]), tmp_path / "whole")
+    loop.fit(tiny_config(overrides, data=[]), tmp_path / "run")
+    refit = tmp_path / "run" / "members" / "0" / "refit"
+    steps = torch.load(refit / "checkpoints" / "last.pt", weights_only=True)["step"]
+    shutil.rmtree(tmp_path / "run" / "members" / "1")
+    shutil.rmtree(tmp_path / "run" / "checkpoints")
+    shutil.rmtree(refit)
+    half = refit_config(member_config(tiny_config(overrides, data=[]), 0), steps)
+    half.trainer.stop_after = 5
+    assert loop.fit(half, refit) == {}  # the refit stopped at step 5
+    assert torch.load(refit / "checkpoints" / "last.pt", weights_only=True)["step"] == 5 < steps
+    loop.fit(tiny_config([*overrides, "resume=true"], data=[]), tmp_path / "run")
+    whole, resumed = (torch.load(tmp_path / r / "checkpoints" / "best.pt", weights_only=True)["model"]
+                      for r in ("whole", "run"))
+    assert whole.keys() == resumed.keys() and all(torch.equal(whole[k], resumed[k]) for k in whole)
