@@ -780,7 +780,8 @@ def test_warm_start_refuses_what_does_not_fit(tmp_path):
 
 def test_the_shipped_model_fits_the_default_sizes(tmp_path):
     """task.init_from=pretrained starts from models/pretrained/larynx_transformer.pt: it must keep fitting the
-    default model config (a change of the defaults needs the shipped model retrained)."""
+    default model config (a change of the defaults needs the shipped model retrained).  The shipped model is an
+    ensemble of the default number of members: member k starts from its member k."""
     from base.cli import compose_config
     from models.pretrained import load_default
     from tasks.larynx_transformer import Task
@@ -788,10 +789,13 @@ def test_the_shipped_model_fits_the_default_sizes(tmp_path):
     linear_pair_task(tmp_path, [])  # writes the pairs folder
     cfg = compose_config("train", ["task=larynx_transformer", "data=pairs", f"data.path={tmp_path / 'linear'}",
                                    "task.init_from=pretrained"])
-    task = Task(cfg)
     shipped, _ = load_default("larynx_transformer")
-    assert torch.equal(task.model.head.weight, shipped.head.weight)
-    assert torch.equal(task.model.style.weight[1], shipped.style.weight[0])
+    assert len(shipped.members) == cfg.task.members == 5
+    for k in (0, 3):
+        cfg.task.member = k
+        task = Task(cfg)
+        assert torch.equal(task.model.head.weight, shipped.members[k].head.weight)
+        assert torch.equal(task.model.style.weight[1], shipped.members[k].style.weight[0])
 
 
 # --------------------------------------------------------------------------- inference CLI
