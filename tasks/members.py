@@ -71,8 +71,9 @@ def refit_config(cfg: DictConfig, steps: int) -> DictConfig:
 
 
 def started(cfg: DictConfig, folder: Path) -> DictConfig:
-    """``cfg`` for the run in ``folder``: with ``resume=true`` a member (or refit) that never saved a checkpoint
-    there starts afresh, the others continue."""
+    """``cfg`` for the run in ``folder``: with ``resume=true`` a member after the first (or a refit) that never
+    saved a checkpoint there starts afresh, the others continue (the first member has nothing to continue only
+    when the whole run has not: that resume stays refused)."""
     if not cfg.resume or RunFolder(folder, writer=False).last.exists():
         return cfg
     out = copy.deepcopy(cfg)
@@ -94,7 +95,7 @@ def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, P
             print(f"{cfg.task.name}: member {k + 1} of {count} (seed {member_cfg.seed}, validation fold {k})",
                   flush=True)
         member_dir = run_dir / "members" / str(k)
-        evaluations.append(fit_one(started(member_cfg, member_dir), member_dir))
+        evaluations.append(fit_one(started(member_cfg, member_dir) if k else member_cfg, member_dir))
         if not RunFolder(member_dir, writer=False).evaluation.is_file():  # trainer.stop_after ended it
             return {}
         if refits:
