@@ -37,7 +37,10 @@ Prints per family the held-out tau RMSE (UV units) of each method, mean and stan
 seeds, and the transformer's ratio to ridge and to the GRU; then where the error lies: each method's RMSE on
 the frames inside the held-out people's swallows and on the rest (the families know their swallows:
 :func:`swallow_frames`); per run, ``<out>/<family>/seed<s>/heldout.png`` plots the held-out tau beside the
-predictions.  The CPU may be shared: each run is
+predictions, and for an ensemble ``members_heldout.npz`` beside it keeps the held-out tau (``tau``
+[sequences, frames]) and every member's prediction (``member``, and ``fold_member`` before the refits: [members,
+sequences, frames]), so other combinations of the same members are scored without training.  The CPU may be
+shared: each run is
 sized to a few minutes on one thread; everything is logged as it goes.
 """
 from __future__ import annotations
@@ -62,6 +65,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import tasks  # noqa: E402,F401  (registers the config schemas)
 from base.cli import compose_config  # noqa: E402
 from base.errors import InputError  # noqa: E402
+from base.files import save_npz  # noqa: E402
 from base.plots import figure, save_figure  # noqa: E402
 from data.expressions import EXPRESSION_NAMES, read_expressions  # noqa: E402
 from data.pairs import LarynxSequence, save_pair  # noqa: E402
@@ -519,7 +523,11 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     for k in range(2, len(alone)):
         members[f"first{k}"] = rmse([trimmed_mean(torch.as_tensor(np.stack(taus))).numpy() for taus in zip(*alone[:k])],
                                     heldout)
-    members.update(fold_weights_scores(run_dir, heldout))
+    folds = fold_weights_scores(run_dir, heldout)
+    members.update(folds.pop("scores", {}))
+    if alone:  # every member's held-out tau, to score other combinations of the same runs without training
+        save_npz(work / "members_heldout.npz", tau=np.stack([s.tau for s in heldout]),
+                 member=np.stack([np.stack(taus) for taus in alone]), **folds)
     average_style = [predict_tau(model, s.psi) for s in heldout]           # infer.py without subject
     window = int(round(task.settings.ridge_window * FPS))
     weights, lam = fit_ridge(train_pairs, window, list(task.settings.ridge_lambdas))
@@ -559,11 +567,12 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     return result
 
 
-def fold_weights_scores(run_dir: Path, heldout: list[LarynxSequence]) -> dict[str, float]:
-    """Where the members refit (``data=pairs``, ``tasks.members``): the held-out RMSE of each member's weights
-    before its refit (``fold_member<k>``: chosen on its validation fold; member 0's are the network
-    ``task.members=1`` trains) and of their trimmed mean (``fold_ensemble``), the ensemble without refitting,
-    from the same runs; ``{}`` without refits."""
+def fold_weights_scores(run_dir: Path, heldout: list[LarynxSequence]) -> dict:
+    """Where the members refit (``data=pairs``, ``tasks.members``): under ``scores``, the held-out RMSE of each
+    member's weights before its refit (``fold_member<k>``: chosen on its validation fold; member 0's are the
+    network ``task.members=1`` trains) and of their trimmed mean (``fold_ensemble``), the ensemble without
+    refitting, from the same runs; under ``fold_member``, their held-out tau [members, sequences, frames]; ``{}``
+    without refits."""
     folders = sorted((run_dir / "members").glob("*/refit"), key=lambda f: int(f.parent.name))
     if not folders:
         return {}
@@ -576,7 +585,7 @@ def fold_weights_scores(run_dir: Path, heldout: list[LarynxSequence]) -> dict[st
         scores[f"fold_member{refit.parent.name}"] = rmse(alone[-1], heldout)
     scores["fold_ensemble"] = rmse([trimmed_mean(torch.as_tensor(np.stack(taus))).numpy() for taus in zip(*alone)],
                                    heldout)
-    return scores
+    return {"scores": scores, "fold_member": np.stack([np.stack(taus) for taus in alone])}
 
 
 def summarise(results: dict[str, list[dict[str, float]]]) -> str:

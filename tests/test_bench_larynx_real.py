@@ -138,3 +138,33 @@ def test_the_summary_gives_the_same_runs_without_refit():
     assert "ensemble 0.800 0.820 0.840 0.860 = 0.830 +- 0.022" in line
     assert "member 0 (task.members=1) 0.500 0.600 0.500 0.600 = 0.550 +- 0.050" in line
     assert "spread / member 0's 0.22" in line
+
+
+def test_fold_weights_give_each_members_heldout_tau_and_their_trimmed_mean(tmp_path):
+    """A run whose three members refit: fold_weights_scores reads each member's weights before its refit
+    (members/<k>/checkpoints/best.pt), returns their held-out tau [members, sequences, frames] for scoring other
+    combinations later, each one's RMSE, and the RMSE of the per-frame middle of the three (their trimmed mean)."""
+    from test_larynx_ensemble import member
+
+    from models.checkpoint import save_checkpoint
+    from models.larynx import predict_tau
+
+    run = tmp_path / "run"
+    nets = [member(seed) for seed in range(3)]
+    for k, net in enumerate(nets):
+        (run / "members" / str(k) / "refit").mkdir(parents=True)
+        save_checkpoint(run / "members" / str(k) / "checkpoints" / "best.pt",
+                        {"task": "larynx_transformer", "model_config": net.config, "model": net.state_dict()})
+    rng = np.random.default_rng(0)
+    heldout = [LarynxSequence(rng.uniform(0, 0.5, (90, 55)).astype(np.float32),
+                              rng.normal(0.01, 0.02, 90).astype(np.float32), 30.0, subject, f"take_{subject}")
+               for subject in ("anna", "ben")]
+    out = bench.fold_weights_scores(run, heldout)
+    assert out["fold_member"].shape == (3, 2, 90)
+    expected = np.stack([[predict_tau(net, s.psi, s.subject) for s in heldout] for net in nets])
+    assert np.allclose(out["fold_member"], expected, atol=1e-6)
+    middle = np.median(expected, axis=0)
+    rmse = np.sqrt(np.mean((middle - np.stack([s.tau for s in heldout])) ** 2))
+    assert out["scores"]["fold_ensemble"] == pytest.approx(rmse, rel=1e-5)
+    assert set(out["scores"]) == {"fold_member0", "fold_member1", "fold_member2", "fold_ensemble"}
+    assert bench.fold_weights_scores(tmp_path / "none", heldout) == {}
