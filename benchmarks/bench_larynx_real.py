@@ -568,7 +568,7 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
 
 
 def fold_weights_scores(run_dir: Path, heldout: list[LarynxSequence]) -> dict:
-    """Where the members refit (``data=pairs``, ``tasks.members``): under ``scores``, the held-out RMSE of each
+    """Where the members refit (``task.refit``, ``tasks.members``): under ``scores``, the held-out RMSE of each
     member's weights before its refit (``fold_member<k>``: chosen on its validation fold; member 0's are the
     network ``task.members=1`` trains) and of their trimmed mean (``fold_ensemble``), the ensemble without
     refitting, from the same runs; under ``fold_member``, their held-out tau [members, sequences, frames]; ``{}``

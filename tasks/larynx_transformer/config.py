@@ -42,11 +42,11 @@ class LarynxTaskConfig:
     # (benchmarks/README.md, "Ensembles over seeds and folds").
     members: int = 5
     member: int | None = None     # train this member alone (set for each member by the run; null: all of them)
-    # An ensemble (members > 1) on data=pairs, where each member's validation fold is taken from the training takes,
-    # always refits: the fold only chooses how many steps the member trains (its best step), then the member trains
-    # again on every take for that many steps (tasks.members, "Refitting"), so no member goes without the takes of
-    # its fold.  The run sets this for a member's refit:
-    refit_steps: int | None = None
+    # An ensemble (members > 1) on data=pairs, where each member's validation fold is taken from the training takes:
+    # the fold only chooses how many steps the member trains (its best step), then the member trains again on every
+    # take for that many steps (tasks.members, "Refitting"), so no member goes without the takes of its fold.
+    refit: bool = True
+    refit_steps: int | None = None  # set by the run for a member's refit: train on every take for this many steps
 
     def __post_init__(self):
         if self.members < 1:

@@ -98,11 +98,9 @@ def combine_members(checkpoints: list[dict], cfg: DictConfig) -> dict:
 
 
 def refits(cfg: DictConfig) -> bool:
-    """Whether the members refit on all the data after their folds chose their lengths (``tasks.members``): on
-    ``data=pairs`` (``data=synthetic`` validates on people of its own, not on training data).  Without the refits
-    the ensemble spread more over training seeds than one network on one family (``benchmarks/README.md``, "Refit
-    on every take")."""
-    return cfg.data.kind == "pairs"
+    """Whether the members refit on all the data after their folds chose their lengths (``tasks.members``):
+    ``task.refit`` on ``data=pairs`` (``data=synthetic`` validates on people of its own, not on training data)."""
+    return bool(cfg.task.get("refit", False)) and cfg.data.kind == "pairs"
 
 
 def evaluate_ensemble(cfg: DictConfig, ensemble) -> dict[str, float]:
