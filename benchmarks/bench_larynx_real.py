@@ -521,13 +521,16 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
         alone.append([predict_tau(member, s.psi, s.subject) for s in heldout])
         members[f"member{k}"] = rmse(alone[-1], heldout)
     for k in range(2, len(alone)):
-        members[f"first{k}"] = rmse([trimmed_mean(torch.as_tensor(np.stack(taus))).numpy() for taus in zip(*alone[:k])],
-                                    heldout)
-    folds = fold_weights_scores(run_dir, heldout)
-    members.update(folds.pop("scores", {}))
+        members[f"first{k}"] = ensemble_rmse(alone[:k], heldout)
+    # Where the members refit: each member's weights before its refit (member 0's: the network task.members=1
+    # trains) and their ensemble, the ensemble without refitting, from the same run
+    fold = fold_member_taus(run_dir, heldout)
+    members.update({f"fold_member{k}": rmse(taus, heldout) for k, taus in enumerate(fold)})
+    if fold:
+        members["fold_ensemble"] = ensemble_rmse(fold, heldout)
     if alone:  # every member's held-out tau, to score other combinations of the same runs without training
-        save_npz(work / "members_heldout.npz", tau=np.stack([s.tau for s in heldout]),
-                 member=np.stack([np.stack(taus) for taus in alone]), **folds)
+        save_npz(work / "members_heldout.npz", tau=np.stack([s.tau for s in heldout]), member=np.asarray(alone),
+                 **({"fold_member": np.asarray(fold)} if fold else {}))
     average_style = [predict_tau(model, s.psi) for s in heldout]           # infer.py without subject
     window = int(round(task.settings.ridge_window * FPS))
     weights, lam = fit_ridge(train_pairs, window, list(task.settings.ridge_lambdas))
@@ -567,25 +570,23 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     return result
 
 
-def fold_weights_scores(run_dir: Path, heldout: list[LarynxSequence]) -> dict:
-    """Where the members refit (``task.refit``, ``tasks.members``): under ``scores``, the held-out RMSE of each
-    member's weights before its refit (``fold_member<k>``: chosen on its validation fold; member 0's are the
-    network ``task.members=1`` trains) and of their trimmed mean (``fold_ensemble``), the ensemble without
-    refitting, from the same runs; under ``fold_member``, their held-out tau [members, sequences, frames]; ``{}``
-    without refits."""
+def ensemble_rmse(taus: list[list[np.ndarray]], heldout: list[LarynxSequence]) -> float:
+    """Held-out RMSE of the members' trimmed mean (the ensemble's combination); ``taus[k][i]``: member k's tau on
+    held-out sequence i."""
+    return rmse([trimmed_mean(torch.as_tensor(np.stack(per_member))).numpy() for per_member in zip(*taus)], heldout)
+
+
+def fold_member_taus(run_dir: Path, heldout: list[LarynxSequence]) -> list[list[np.ndarray]]:
+    """Where the members refit (``task.refit``, ``tasks.members``): each member's held-out tau on its weights
+    before its refit (chosen on its validation fold), ``[member][sequence]``; ``[]`` without refits."""
     folders = sorted((run_dir / "members").glob("*/refit"), key=lambda f: int(f.parent.name))
-    if not folders:
-        return {}
-    scores, alone = {}, []
+    taus = []
     for refit in folders:
         checkpoints = refit.parent / "checkpoints"
         best = checkpoints / "best.pt"
         member = load_model(best if best.is_file() else checkpoints / "last.pt", "larynx_transformer")[0]
-        alone.append([predict_tau(member, s.psi, s.subject) for s in heldout])
-        scores[f"fold_member{refit.parent.name}"] = rmse(alone[-1], heldout)
-    scores["fold_ensemble"] = rmse([trimmed_mean(torch.as_tensor(np.stack(taus))).numpy() for taus in zip(*alone)],
-                                   heldout)
-    return {"scores": scores, "fold_member": np.stack([np.stack(taus) for taus in alone])}
+        taus.append([predict_tau(member, s.psi, s.subject) for s in heldout])
+    return taus
 
 
 def summarise(results: dict[str, list[dict[str, float]]]) -> str:
