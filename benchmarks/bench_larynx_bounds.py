@@ -39,21 +39,17 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_larynx_real import (  # noqa: E402
+from bench_larynx_real import SUBJECTS, chosen_families, heldout_name, load_recordings, make_pairs  # noqa: E402
+from larynx_families import (  # noqa: E402
     FPS,
-    SUBJECTS,
     articulation_part,
-    chosen_families,
     fire,
-    heldout_name,
-    load_recordings,
-    make_pairs,
-    run_length,
     swallow_frames,
     swallow_onsets,
     swallow_part,
 )
 
+from data.synthetic_larynx import run_length  # noqa: E402
 from tasks.larynx_transformer import LarynxTaskConfig, fit_ridge, rmse, window_features  # noqa: E402
 
 BELOW = (0.05, 0.1, 0.15, 0.25)   # levels a weight can stay under (a closed jaw: < 0.1-0.12)

@@ -10,6 +10,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_larynx_real as bench  # noqa: E402
+import larynx_families as families  # noqa: E402
 
 from data.pairs import LarynxSequence  # noqa: E402
 
@@ -17,7 +18,7 @@ from data.pairs import LarynxSequence  # noqa: E402
 def closing_jaw(open_frames: int = 60, frames: int = 300) -> np.ndarray:
     """psi [frames,55]: the jaw open (0.5) for ``open_frames`` frames, then closed; all else at rest."""
     psi = np.zeros((frames, 55), np.float32)
-    psi[:open_frames, bench.K["jawOpen"]] = 0.5
+    psi[:open_frames, families.K["jawOpen"]] = 0.5
     return psi
 
 
@@ -26,17 +27,17 @@ def test_swallow_frames_follow_the_cue_and_the_duration():
     0.7 + 2 tau_a seconds; the frames marked are inside that span and fill most of it."""
     psi = closing_jaw()
     for subject in range(3):
-        p = bench.person("subject", subject, seed=0, terms=5)
-        mask = bench.swallow_frames("subject", psi, subject, seed=0)
+        p = families.person("subject", subject, seed=0, terms=5)
+        mask = families.swallow_frames("subject", psi, subject, seed=0)
         onset = 60 + 9 - 1  # the first frame where the closure has held 9 frames
-        end = onset + int(np.ceil((0.7 + 2 * p.tau_a) * bench.FPS))
+        end = onset + int(np.ceil((0.7 + 2 * p.tau_a) * families.FPS))
         assert not mask[:onset].any() and not mask[end + 1:].any(), (subject, np.flatnonzero(mask)[[0, -1]])
         assert mask[onset:end + 1].mean() > 0.8, (subject, mask[onset:end + 1].mean())
 
 
 def test_no_swallow_while_the_jaw_stays_open():
     psi = closing_jaw(open_frames=300)
-    assert not bench.swallow_frames("damped", psi, 0, seed=1).any()
+    assert not families.swallow_frames("damped", psi, 0, seed=1).any()
 
 
 def test_split_rmse_puts_each_error_on_its_side():
@@ -54,16 +55,16 @@ def test_fire_waits_out_the_refractory_time_from_a_swallow_before_the_take():
     cue = np.zeros(300, bool)
     for start in (10, 100, 200):
         cue[start:start + 5] = True
-    assert bench.fire(cue, 3.0) == [10, 100, 200]               # no swallow before the take
-    assert bench.fire(cue, 3.0, since=1.0) == [100, 200]        # 1 s before frame 0: frame 10 is 1.3 s later
-    assert bench.fire(cue, 3.0, since=3.0) == [10, 100, 200]
+    assert families.fire(cue, 3.0) == [10, 100, 200]               # no swallow before the take
+    assert families.fire(cue, 3.0, since=1.0) == [100, 200]        # 1 s before frame 0: frame 10 is 1.3 s later
+    assert families.fire(cue, 3.0, since=3.0) == [10, 100, 200]
 
 
 def talking_jaw(minutes: float) -> np.ndarray:
     """psi: the jaw open 1 s, then shut 4 s, over and over: a pause cue for every family every 5 s."""
-    frames = int(minutes * 60 * bench.FPS)
+    frames = int(minutes * 60 * families.FPS)
     psi = np.zeros((frames, 55), np.float32)
-    psi[(np.arange(frames) % int(5 * bench.FPS)) < bench.FPS, bench.K["jawOpen"]] = 0.5
+    psi[(np.arange(frames) % int(5 * families.FPS)) < families.FPS, families.K["jawOpen"]] = 0.5
     return psi
 
 
@@ -73,26 +74,27 @@ def test_physiological_spacing_swallows_about_once_a_minute():
     (0.67-1.42 a minute, the review cited beside it), on a take of 10 minutes, and the articulation is unchanged."""
     psi = talking_jaw(10.0)
     for family in ("damped", "saturating", "subject"):
-        own = [len(bench.swallow_onsets(bench.swallow_frames(family, psi, s, 0))) / 10 for s in range(3)]
+        own = [len(families.swallow_onsets(families.swallow_frames(family, psi, s, 0))) / 10 for s in range(3)]
         assert min(own) >= 6, (family, own)
-        spaced_masks = [bench.swallow_frames(family, psi, s, seed, 7, bench.PHYSIOLOGICAL_SPACING)
+        spaced_masks = [families.swallow_frames(family, psi, s, seed, 7, families.PHYSIOLOGICAL_SPACING)
                         for s in range(3) for seed in range(4)]
-        rates = [len(bench.swallow_onsets(mask)) / 10 for mask in spaced_masks]
+        rates = [len(families.swallow_onsets(mask)) / 10 for mask in spaced_masks]
         assert 0.67 <= np.mean(rates) <= 1.42 and max(rates) <= 1.8, (family, rates)
-        spaced = bench.family_tau(family, psi, 1, 0, 7, bench.PHYSIOLOGICAL_SPACING)
-        own_tau = bench.family_tau(family, psi, 1, 0, 7)
-        swallowing = bench.swallow_frames(family, psi, 1, 0) | bench.swallow_frames(family, psi, 1, 0, 7,
-                                                                                   bench.PHYSIOLOGICAL_SPACING)
+        spaced = families.family_tau(family, psi, 1, 0, 7, families.PHYSIOLOGICAL_SPACING)
+        own_tau = families.family_tau(family, psi, 1, 0, 7)
+        swallowing = families.swallow_frames(family, psi, 1, 0) | families.swallow_frames(family, psi, 1, 0, 7,
+                                                                                   families.PHYSIOLOGICAL_SPACING)
         np.testing.assert_allclose(spaced[~swallowing], own_tau[~swallowing], atol=1e-4)  # the masks end at 1e-4
 
 
 def test_spacing_draws_a_refractory_time_per_person_and_a_phase_per_take():
-    people = [bench.person("damped", s, 0, 5, bench.PHYSIOLOGICAL_SPACING, take=t) for s in range(3) for t in (1, 2)]
-    low, high = bench.PHYSIOLOGICAL_SPACING
+    people = [families.person("damped", s, 0, 5, families.PHYSIOLOGICAL_SPACING, take=t)
+              for s in range(3) for t in (1, 2)]
+    low, high = families.PHYSIOLOGICAL_SPACING
     assert all(low <= p.refractory <= high and 0 <= p.since <= p.refractory for p in people)
     assert people[0].refractory == people[1].refractory and people[0].since != people[1].since
     assert len({p.refractory for p in people}) == 3
-    plain = bench.person("damped", 0, 0, 5)
+    plain = families.person("damped", 0, 0, 5)
     assert plain.refractory is None and plain.since is None and plain.gain == people[0].gain
 
 
@@ -100,7 +102,7 @@ def test_spacing_draws_a_refractory_time_per_person_and_a_phase_per_take():
 def test_swallow_spacing_option_names_what_it_expects(bad, capsys):
     parser = argparse.ArgumentParser()
     assert bench.swallow_spacing(parser, "family") is None
-    assert bench.swallow_spacing(parser, "physiological") == bench.PHYSIOLOGICAL_SPACING
+    assert bench.swallow_spacing(parser, "physiological") == families.PHYSIOLOGICAL_SPACING
     assert bench.swallow_spacing(parser, "20,40") == (20.0, 40.0)
     with pytest.raises(SystemExit):
         bench.swallow_spacing(parser, bad)
