@@ -39,9 +39,9 @@ the frames inside the held-out people's swallows and on the rest (the families k
 ``larynx_families.swallow_frames``); per run, ``<out>/<family>/seed<s>/heldout.png`` plots the held-out tau beside the
 predictions, and for an ensemble ``members_heldout.npz`` beside it keeps the held-out tau (``tau``
 [sequences, frames]) and every member's prediction (``member``, and ``fold_member`` before the refits: [members,
-sequences, frames]), so other combinations of the same members are scored without training.  The CPU may be
-shared: each run is
-sized to a few minutes on one thread; everything is logged as it goes.
+sequences, frames]), so other combinations of the same members are scored without training
+(``score_members.py``: the ensemble's spread over training seeds from recombined members).  The CPU may be
+shared: each run is sized to a few minutes on one thread; everything is logged as it goes.
 """
 from __future__ import annotations
 
