@@ -12,10 +12,11 @@ two either way (a 90% interval of 0.62-2.92 times the estimate, chi-square with 
 members give more: member k of every run validates on the same fold k of the takes (``data.split_seed`` fixes
 the folds, the training seed only the member's seed), so an ensemble whose member k comes from any of the n
 runs is as good a draw of "an ensemble trained from other seeds" as the runs' own.  The n^K recombined
-ensembles give the ensemble's mean and spread over member seeds; one network (member 0 before any refit: the
-network ``task.members=1`` trains) has only its n runs.  Prints per family and combination (``refit``: the
-members as the ensemble holds them; ``fold``: before their refits) the runs' own RMSE / ridge, the recombined
-mean and standard deviation and its ratio to one network's.
+ensembles give the ensemble's mean and spread over member seeds.  One network (member 0 before any refit: the
+network ``task.members=1`` trains, which validates on fold 0) has only its n runs; the members before their
+refits that validated on the other folds show what one network scores with another validation split.  Prints
+per family the runs' RMSE / ridge, and per combination (``refit``: the members as the ensemble holds them;
+``fold``: before their refits) the recombined mean and standard deviation and its ratio to one network's.
 """
 
 from __future__ import annotations
@@ -106,6 +107,11 @@ def main() -> None:
             one = np.array([np.sqrt(np.mean((r.get("fold_member", r["member"])[0] - r["tau"]) ** 2)) / ridge
                             for r in runs])
             print(f"  one network   {' '.join(f'{v:.3f}' for v in one)} = {one.mean():.3f} +- {one.std():.3f}")
+            if all("fold_member" in r for r in runs):  # a single network validated on fold k, for every k
+                folds = np.array([[np.sqrt(np.mean((f - r["tau"]) ** 2)) / ridge for f in r["fold_member"]]
+                                  for r in runs])
+                print(f"  one network on each fold {' '.join(f'{v:.3f}' for v in folds.mean(0))}: "
+                      f"{folds.mean():.3f} +- {folds.std():.3f} over the runs and folds")
             for name, key in COMBINATIONS.items():
                 if not all(key in r for r in runs):
                     continue
