@@ -46,6 +46,16 @@ def builtin_rig():
     return HeadNeckModel.builtin()
 
 
+@pytest.fixture(scope="session")
+def short(builtin_rig):
+    """12 small normal-map frames of the built-in rig (noise-free, 128x128 at 0.12 cm/px), for the tracker's
+    readers and command line."""
+    from scene.normal_sequences import SequenceConfig, make_sequence
+
+    cfg = SequenceConfig(frames=12, size=128, cm_per_px=0.12, noise=0.0, head_motion_deg=0.0)
+    return make_sequence(builtin_rig, cfg, seed=2)
+
+
 def turn_bone_frames(rig, turns: dict[str, np.ndarray]):
     """The RigData ``rig`` with bone j's rest frame turned by ``turns[name_j]`` ([3,3]; its axes become
     ``R_j @ Q_j``) about its origin, its children's rest transforms re-expressed in the turned frame: the

@@ -27,13 +27,6 @@ def track_cli(overrides: list[str]) -> dict:
     return run(compose_config("track", overrides))
 
 
-@pytest.fixture(scope="module")
-def short(builtin_rig):
-    """12 small frames (noise-free) for the readers."""
-    cfg = SequenceConfig(frames=12, size=128, cm_per_px=0.12, noise=0.0, head_motion_deg=0.0)
-    return make_sequence(builtin_rig, cfg, seed=2)
-
-
 def read_all(path, **kwargs) -> np.ndarray:
     return np.stack([n for _, _, n in open_source(path, **kwargs).frames()])
 
