@@ -71,6 +71,7 @@ from larynx_families import (  # noqa: E402
     swallow_frames,
     swallow_onsets,
 )
+from score_members import ensemble_rmse  # noqa: E402
 
 import tasks  # noqa: E402,F401  (registers the config schemas)
 from base.cli import compose_config  # noqa: E402
@@ -80,7 +81,7 @@ from base.plots import figure, save_figure  # noqa: E402
 from data.expressions import read_expressions  # noqa: E402
 from data.pairs import LarynxSequence, save_pair  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
-from models.larynx import predict_tau, trimmed_mean  # noqa: E402
+from models.larynx import predict_tau  # noqa: E402
 from tasks.larynx_transformer import Task, fit_ridge, rmse, window_features  # noqa: E402
 from tasks.loop import fit, lr_factor, step_seeds  # noqa: E402
 
@@ -307,19 +308,20 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     # An ensemble's members alone (member 0 is the single network of the training seed: task.members=1), and the
     # ensembles of its first k members (``first<k>``, 1 < k < K: what fewer members would have scored)
     members, alone = {}, []
+    tau = np.stack([s.tau for s in heldout])  # [sequences, frames]: the held-out recording with each person's tau
     for k, member in enumerate(getattr(model, "members", [])):
         alone.append([predict_tau(member, s.psi, s.subject) for s in heldout])
         members[f"member{k}"] = rmse(alone[-1], heldout)
     for k in range(2, len(alone)):
-        members[f"first{k}"] = ensemble_rmse(alone[:k], heldout)
+        members[f"first{k}"] = ensemble_rmse(np.asarray(alone[:k]), tau)
     # Where the members refit: each member's weights before its refit (member 0's: the network task.members=1
     # trains) and their ensemble, the ensemble without refitting, from the same run
     fold = fold_member_taus(run_dir, heldout)
     members.update({f"fold_member{k}": rmse(taus, heldout) for k, taus in enumerate(fold)})
     if fold:
-        members["fold_ensemble"] = ensemble_rmse(fold, heldout)
+        members["fold_ensemble"] = ensemble_rmse(np.asarray(fold), tau)
     if alone:  # every member's held-out tau, to score other combinations of the same runs without training
-        save_npz(work / "members_heldout.npz", tau=np.stack([s.tau for s in heldout]), member=np.asarray(alone),
+        save_npz(work / "members_heldout.npz", tau=tau, member=np.asarray(alone),
                  **({"fold_member": np.asarray(fold)} if fold else {}))
     average_style = [predict_tau(model, s.psi) for s in heldout]           # infer.py without subject
     window = int(round(task.settings.ridge_window * FPS))
@@ -358,12 +360,6 @@ def run_one(recordings, family: str, seed: int, out: Path, log, extra: list[str]
     log(f"  {family} seed {seed}{trained} (held out {heldout_name(list(recordings), seed, holdout)}): "
         + ", ".join(f"{k} {v:.5g}" for k, v in result.items()))
     return result
-
-
-def ensemble_rmse(taus: list[list[np.ndarray]], heldout: list[LarynxSequence]) -> float:
-    """Held-out RMSE of the members' trimmed mean (the ensemble's combination); ``taus[k][i]``: member k's tau on
-    held-out sequence i."""
-    return rmse([trimmed_mean(torch.as_tensor(np.stack(per_member))).numpy() for per_member in zip(*taus)], heldout)
 
 
 def fold_member_taus(run_dir: Path, heldout: list[LarynxSequence]) -> list[list[np.ndarray]]:

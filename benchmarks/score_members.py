@@ -52,10 +52,14 @@ def read_run(path: Path) -> dict[str, np.ndarray]:
     return arrays
 
 
+def rmse(prediction: np.ndarray, tau: np.ndarray) -> float:
+    """Root mean square of ``prediction - tau`` over every frame of every sequence, in float64."""
+    return float(np.sqrt(np.mean((np.asarray(prediction, np.float64) - tau) ** 2)))
+
+
 def ensemble_rmse(members: np.ndarray, tau: np.ndarray) -> float:
     """RMSE of the trimmed mean (the ensemble's combination) of ``members`` [K, sequences, frames] against tau."""
-    combined = trimmed_mean(torch.as_tensor(members)).numpy()
-    return float(np.sqrt(np.mean((combined - tau) ** 2)))
+    return rmse(trimmed_mean(torch.as_tensor(members, dtype=torch.float64)).numpy(), tau)
 
 
 def recombined_rmse(runs: list[dict[str, np.ndarray]], key: str) -> np.ndarray:
@@ -104,12 +108,10 @@ def main() -> None:
             runs = [read_run(by_seed[t][0]) for t in seeds]
             ridge = by_seed[seeds[0]][1]
             print(f"{family}, benchmark seed {args.seed}, training seeds {seeds} (RMSE / ridge):")
-            one = np.array([np.sqrt(np.mean((r.get("fold_member", r["member"])[0] - r["tau"]) ** 2)) / ridge
-                            for r in runs])
+            one = np.array([rmse(r.get("fold_member", r["member"])[0], r["tau"]) / ridge for r in runs])
             print(f"  one network   {' '.join(f'{v:.3f}' for v in one)} = {one.mean():.3f} +- {one.std():.3f}")
             if all("fold_member" in r for r in runs):  # a single network validated on fold k, for every k
-                folds = np.array([[np.sqrt(np.mean((f - r["tau"]) ** 2)) / ridge for f in r["fold_member"]]
-                                  for r in runs])
+                folds = np.array([[rmse(f, r["tau"]) / ridge for f in r["fold_member"]] for r in runs])
                 print(f"  one network on each fold {' '.join(f'{v:.3f}' for v in folds.mean(0))}: "
                       f"{folds.mean():.3f} +- {folds.std():.3f} over the runs and folds")
             for name, key in COMBINATIONS.items():

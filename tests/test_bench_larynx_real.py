@@ -11,6 +11,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_larynx_real as bench  # noqa: E402
 import larynx_families as families  # noqa: E402
+import score_members  # noqa: E402
 
 from data.pairs import LarynxSequence  # noqa: E402
 
@@ -167,5 +168,6 @@ def test_fold_weights_give_each_members_heldout_tau_and_their_trimmed_mean(tmp_p
     assert np.allclose(fold, expected, atol=1e-6)
     middle = np.median(expected, axis=0)
     rmse = np.sqrt(np.mean((middle - np.stack([s.tau for s in heldout])) ** 2))
-    assert bench.ensemble_rmse(list(fold), heldout) == pytest.approx(rmse, rel=1e-5)
+    assert score_members.ensemble_rmse(np.asarray(fold), np.stack([s.tau for s in heldout])) == pytest.approx(
+        rmse, rel=1e-5)
     assert bench.fold_member_taus(tmp_path / "none", heldout) == []
