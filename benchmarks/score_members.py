@@ -82,7 +82,10 @@ def find_runs(outs: list[Path], family: str | None, seed: int) -> dict[str, dict
         results_file = out / "results.json"
         if not results_file.is_file():
             raise InputError(f"{results_file}: not found; expected a bench_larynx_real.py work folder")
-        results = json.loads(results_file.read_text())
+        try:
+            results = json.loads(results_file.read_text())
+        except json.JSONDecodeError as e:
+            raise InputError(f"{results_file}: not JSON ({e}); expected bench_larynx_real.py's results") from None
         for path in sorted(out.glob(f"*/seed{seed}/train*/members_heldout.npz")):
             name, training_seed = path.parts[-4], int(path.parts[-2].removeprefix("train"))
             if family not in (None, name):
@@ -92,6 +95,9 @@ def find_runs(outs: list[Path], family: str | None, seed: int) -> dict[str, dict
                 raise InputError(f"{results_file}: {len(ridge)} ridge RMSEs for {name}; expected the runs of "
                                  "one benchmark seed")
             found.setdefault(name, {})[training_seed] = (path, ridge.pop())
+    if not found:
+        raise InputError(f"no <family>/seed{seed}/train<t>/members_heldout.npz in {', '.join(map(str, outs))}"
+                         + (f" for {family}" if family else "") + "; expected runs of --training-seeds")
     return found
 
 

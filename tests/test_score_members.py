@@ -54,3 +54,11 @@ def test_a_file_without_members_is_named(tmp_path):
     (tmp_path / "broken.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match=r"broken\.npz: cannot read"):
         score_members.read_run(tmp_path / "broken.npz")
+
+
+def test_a_folder_without_runs_is_named(tmp_path):
+    with pytest.raises(InputError, match=r"results\.json: not found"):
+        score_members.find_runs([tmp_path], None, 0)
+    (tmp_path / "results.json").write_text("{}")
+    with pytest.raises(InputError, match=r"no <family>/seed0/train<t>/members_heldout\.npz in .* for damped"):
+        score_members.find_runs([tmp_path], "damped", 0)
