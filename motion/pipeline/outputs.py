@@ -1,5 +1,5 @@
 """The files of one take: params.npz / params.csv, the plot, per-frame meshes, anim.glb, preview.mp4,
-viewer.html and anim.fbx."""
+viewer.html, anim.fbx and anim.usdc (.usda, .usdz)."""
 from __future__ import annotations
 
 import time
@@ -19,6 +19,7 @@ from motion.pipeline.models import Models
 from scene.fbx import export_fbx
 from scene.gltf import export_glb
 from scene.preview import Panel, anatomical_degrees, write_preview
+from scene.usd import export_usd
 from scene.viewer import build_viewer
 
 
@@ -146,4 +147,10 @@ def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, fol
         report = export_fbx(params, rig, folder / "anim.fbx", cfg.fbx_units, glb=glb, take=take)
         report_line(report)
         seconds["fbx"] = time.perf_counter() - started
+    if "usd" in cfg.export:
+        started = time.perf_counter()
+        report = export_usd(params, rig, folder / f"anim.{cfg.usd_format}", cfg.usd_units,
+                            source=str(params.producers["source"]))
+        report_line(report)
+        seconds["usd"] = time.perf_counter() - started
     return seconds
