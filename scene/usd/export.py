@@ -20,7 +20,7 @@ from base.errors import InputError
 from base.files import atomic_path
 from data.params import AnimationParams
 from models.rig import HeadNeckModel
-from scene.gltf import METRES_PER_CM, export_data, export_error_cm
+from scene.gltf import METRES_PER_CM, ExportData, export_data, export_error_cm
 
 USD_FORMATS = ("usdc", "usda", "usdz")
 USD_UNITS = ("cm", "m")
@@ -140,10 +140,12 @@ def export_usd(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
                                                        morph_normals)
     from scene.usd.stage import build_stage
 
+    larynx_scale = within_unit_weights(export, len(rig.expression_names), len(larynx.taus))
     codes = time_codes(params)
     metadata = {"generator": "hackneck scene.usd (usd-core)", "source_units": "cm", "rig": str(params.rig or ""),
                 "rig_checksum": str(params.rig_checksum or ""), "producers": json.dumps(params.producers),
-                "target_names": list(export.target_names), "larynx_taus": [float(t) for t in larynx.taus]}
+                "target_names": list(export.target_names), "larynx_taus": [float(t) for t in larynx.taus],
+                "larynx_target_scale": larynx_scale}
     stage = build_stage(export, rig, codes, float(params.fps), 1.0 / METRES_PER_UNIT[units], METRES_PER_UNIT[units],
                         metadata)
     size = 0
@@ -160,6 +162,22 @@ def export_usd(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
     if check or influences.truncated:
         report.max_error_cm = export_error_cm(export, rig, params)
     return report
+
+
+def within_unit_weights(export: ExportData, first: int, count: int) -> float:
+    """Scale the ``count`` larynx targets from index ``first`` (in place) by the clip's largest larynx
+    weight ``s`` when it exceeds 1, dividing their weights by it: the targets become ``L(s, tau_k)`` and
+    their weights ``eta / s * hat_k(tau)`` stay in [0, 1] (eta >= 0).  USD does not clamp weights, but
+    Blender's USD importer gives every shape key the slider range [0, 1] and clamps to it, and a larynx
+    larger than the generic one has eta > 1.  Returns ``s`` (at most the clip's largest eta), or 1."""
+    columns = slice(first, first + count)
+    scale = max(1.0, float(np.abs(export.morph_weights[:, columns]).max(initial=0.0)))
+    if scale > 1.0:
+        export.targets[columns] = (export.targets[columns].astype(np.float64) * scale).astype(np.float32)
+        if len(export.normal_targets):
+            export.normal_targets[columns] = (export.normal_targets[columns] * scale).astype(np.float32)
+        export.morph_weights[:, columns] = (export.morph_weights[:, columns] / scale).astype(np.float32)
+    return scale
 
 
 def write_stage(stage, target: Path, fmt: str, name: str) -> None:
