@@ -90,18 +90,26 @@ def test_stage_layout(builtin_rig, builtin_usd):
     assert binding.GetJointIndicesPrimvar().GetElementSize() == 8
     assert binding.GetJointWeightsPrimvar().GetInterpolation() == "vertex"
     shapes = list(binding.GetBlendShapesAttr().Get())
-    assert len(shapes) == 55 + report.larynx_targets and shapes[:2] == ["browDown_L", "browDown_R"]
-    assert all(s.startswith("larynx_tau_") for s in shapes[55:])
+    assert shapes[:2] == ["browDown_L", "browDown_R"] and all(s.startswith("larynx_tau_") for s in shapes[55:-2])
+    assert len(shapes) == 55 + report.larynx_targets + 2 and shapes[-2:] == ["jawOpen_over", "jawOpen_under"]
 
+    # every weight in [0, 1] (Blender clamps to it); jawOpen's -0.3 .. 1.4 split as jawOpen + 0.4 over - 0.3 under
     animation = UsdSkel.Animation(stage.GetPrimAtPath("/hackneck/Skeleton/Animation"))
     assert len(animation.GetRotationsAttr().GetTimeSamples()) == 30
     weights = np.array([np.array(animation.GetBlendShapeWeightsAttr().Get(t)) for t in range(30)])
+    assert weights.min() >= 0 and weights.max() <= 1
     jaw = shapes.index("jawOpen")
-    np.testing.assert_allclose(weights[:, jaw], params.psi[:, jaw], atol=1e-6)   # -0.3 .. 1.4, not clamped
-    larynx = weights[:, 55:]
-    assert larynx.min() >= 0 and larynx.max() == pytest.approx(1.0)   # rescaled by the largest weight...
-    scale = stage.GetRootLayer().customLayerData["larynx_target_scale"]
-    assert 1.2 < scale <= params.eta.max()                              # ...eta * hat, eta up to 1.3
+    np.testing.assert_allclose(weights[:, jaw] + 0.4 * weights[:, -2] - 0.3 * weights[:, -1], params.psi[:, jaw],
+                               atol=1e-6)
+
+    def offsets(name):
+        return np.array(UsdSkel.BlendShape(stage.GetPrimAtPath(f"/hackneck/head_neck/{name}")).GetOffsetsAttr().Get())
+    np.testing.assert_allclose(offsets("jawOpen_over"), 0.4 * offsets("jawOpen"), atol=1e-6)
+    np.testing.assert_allclose(offsets("jawOpen_under"), -0.3 * offsets("jawOpen"), atol=1e-6)
+    larynx = weights[:, 55:-2]
+    assert larynx.max() == pytest.approx(1.0)                         # rescaled by the largest weight...
+    assert 1.2 < report.larynx_scale <= params.eta.max()              # ...eta * hat, eta up to 1.3
+    assert stage.GetRootLayer().customLayerData["larynx_target_scale"] == pytest.approx(report.larynx_scale)
 
 
 def test_validators(builtin_usd, tmp_path):
@@ -135,21 +143,14 @@ def test_usdz_in_metres_opens_in_a_fresh_process(builtin_rig, tmp_path):
     assert out.stdout.split() == ["1.0", str(builtin_rig.num_vertices), "7.0"]
 
 
-def test_giraffe_through_the_command_line(builtin_rig, tmp_path, capsys):
-    from models.rig import HeadNeckModel
-    from scene.characters import build_giraffe
-
-    character = build_giraffe(builtin_rig.rig)
-    character.save(tmp_path / "giraffe_rig.npz")                 # built once (character=giraffe builds it again)
-    giraffe = HeadNeckModel(character)
-    params = usd_clip(giraffe, frames=6, seed=2)
-    save_params(tmp_path / "giraffe.npz", params)
-    run_cli("gltf", gltf_run, [f"source={tmp_path / 'giraffe.npz'}", f"out={tmp_path / 'giraffe.usda'}",
-                               f"character={tmp_path / 'giraffe_rig.npz'}", "check=false", "morph_normals=false"])
+def test_command_line_picks_usd_by_suffix(builtin_rig, tmp_path, capsys):
+    params = usd_clip(builtin_rig, frames=4, seed=2)
+    save_params(tmp_path / "params.npz", params)
+    run_cli("gltf", gltf_run, [f"source={tmp_path / 'params.npz'}", f"out={tmp_path / 'anim.usda'}", "check=false",
+                               "morph_normals=false", "usd_units=m"])
     assert "USD (usda, UsdSkel)" in capsys.readouterr().out
-    assert (tmp_path / "giraffe.usda").read_text()[:10] == "#usda 1.0\n"
-    assert validation_errors(tmp_path / "giraffe.usda") == []
-    assert baked_error_cm(tmp_path / "giraffe.usda", giraffe, params).max() < TOLERANCE_CM
+    text = (tmp_path / "anim.usda").read_text()
+    assert text.startswith("#usda 1.0\n") and "metersPerUnit = 1" in text and 'upAxis = "Y"' in text
 
 
 def test_pose_correctives(corrective_rig, tmp_path):  # noqa: F811
@@ -180,9 +181,10 @@ def test_bad_input(builtin_rig, turned_rig, tmp_path, monkeypatch, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "params.npz"]   # nothing else written
 
 
-def test_infer_and_retarget_export_usd(tmp_path):
+def test_infer_and_retarget_onto_the_giraffe_export_usd(tmp_path):
     from base.files import write_csv
     from infer import run as infer_run
+    from models.rig import HeadNeckModel
     from motion.retarget import run as retarget_run
 
     frames = 10
@@ -192,13 +194,18 @@ def test_infer_and_retarget_export_usd(tmp_path):
                                       "HeadRoll": np.zeros(frames)}, float_format="%.9g")
     out = tmp_path / "infer"
     infer_run(compose_config("infer", [f"expressions={tmp_path / 'take.csv'}", f"out_dir={out}", "checkpoint=none",
-                                       "head2neck=none", "plot=false", "allow_missing=true", "export=[usd]"]))
-    assert validation_errors(out / "anim.usdc") == []
-    retargeted = tmp_path / "human"
-    run_cli("retarget", retarget_run, argv=[f"source={out / 'params.npz'}", "character=human",
-                                            f"out_dir={retargeted}", "meshes=false", "export=[usd]",
-                                            "usd_format=usda"])
-    assert (retargeted / "animation.usda").read_text()[:10] == "#usda 1.0\n"
+                                       "head2neck=none", "plot=false", "allow_missing=true", "export=[usd]",
+                                       "usd_format=usdz"]))
+    assert validation_errors(out / "anim.usdz") == []
+    # the giraffe (retargeted, its rig saved as character.npz) exports as any rig does
+    giraffe = tmp_path / "giraffe"
+    run_cli("retarget", retarget_run, argv=[f"source={out / 'params.npz'}", "character=giraffe",
+                                            f"out_dir={giraffe}", "meshes=false", "export=[usd]"])
+    assert validation_errors(giraffe / "animation.usdc") == []
+    from data.params import load_params
+
+    rig = HeadNeckModel.load(giraffe / "character.npz")
+    assert baked_error_cm(giraffe / "animation.usdc", rig, load_params(giraffe / "params.npz")).max() < TOLERANCE_CM
 
 
 @requires_shared
@@ -225,12 +232,11 @@ def bpy_python() -> str | None:
 @pytest.mark.skipif(bpy_python() is None, reason="no Python with the bpy wheel (pip install bpy, Python 3.11, "
                     "numpy<2: a separate environment; HACKNECK_BPY_PYTHON=<its python>)")
 def test_blender_imports_the_file(builtin_rig, builtin_usd, tmp_path):
-    """Blender frame f is time code f (the clip's frame f); the shape keys keep their [0, 1] sliders, and
-    the larynx weights, rescaled into [0, 1], are not clamped.  jawOpen from -0.3 to 1.4 is: frames 0..29
-    hold it below 0 up to frame 5 and above 1 from frame 23, so the frames compared (6, 14, 22) are those
-    within [0, 1]."""
+    """Blender frame f is time code f (the clip's frame f); its shape keys keep their [0, 1] sliders, which
+    the file's weights respect: jawOpen -0.12 (frame 2, through jawOpen_under), 0.52 and 1.28 (frame 27,
+    through jawOpen_over), the larynx up to 1.3 times the generic one."""
     params, path, _ = builtin_usd
-    frames = [6, 14, 22]
+    frames = [2, 14, 27]
     subprocess.run([bpy_python(), str(READER), str(path), str(tmp_path / "b.npz"), *map(str, frames)], check=True,
                    capture_output=True, timeout=300)
     blender = np.load(tmp_path / "b.npz")

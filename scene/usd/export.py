@@ -20,7 +20,8 @@ from base.errors import InputError
 from base.files import atomic_path
 from data.params import AnimationParams
 from models.rig import HeadNeckModel
-from scene.gltf import METRES_PER_CM, ExportData, export_data, export_error_cm
+from scene.gltf import METRES_PER_CM, export_data, export_error_cm
+from scene.usd.weights import within_unit_weights
 
 USD_FORMATS = ("usdc", "usda", "usdz")
 USD_UNITS = ("cm", "m")
@@ -73,8 +74,9 @@ def require_writable(path: str | os.PathLike) -> Path:
 class UsdReport:
     """What ``export_usd`` wrote: path; format; units; points (rig vertices); faces; frames; fps;
     influences (elementSize of the skin primvars); expression_targets, larynx_targets, corrective_targets;
-    larynx_error_cm (the larynx targets' interpolation bound); max_error_cm (the stored arrays against the
-    rig over every frame, None if not checked); bytes; seconds."""
+    split_targets: the ``_over``/``_under`` targets added for weights outside [0, 1] (``scene.usd.weights``);
+    larynx_error_cm (the larynx targets' interpolation bound); larynx_scale: what they are scaled by;
+    max_error_cm (the stored arrays against the rig over every frame, None if not checked); bytes; seconds."""
 
     path: Path | None
     format: str
@@ -87,7 +89,9 @@ class UsdReport:
     expression_targets: int
     larynx_targets: int
     corrective_targets: int
+    split_targets: int
     larynx_error_cm: float
+    larynx_scale: float
     max_error_cm: float | None = None
     bytes: int = 0
     seconds: float = 0.0
@@ -98,7 +102,8 @@ class UsdReport:
                  f"in {self.seconds:.2f} s",
                  f"  skin: {self.influences} influences per point; blend shapes: {self.expression_targets} "
                  f"expressions, {self.larynx_targets} larynx (interpolation error {self.larynx_error_cm:.4f} cm), "
-                 f"{self.corrective_targets} pose correctives"]
+                 f"{self.corrective_targets} pose correctives"
+                 + (f", {self.split_targets} for weights outside [0, 1]" if self.split_targets else "")]
         if self.max_error_cm is not None:
             lines.append(f"  max vertex error vs the rig over the clip: {self.max_error_cm:.4f} cm")
         return "\n".join(lines)
@@ -136,11 +141,15 @@ def export_usd(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
     if path is not None:
         path = require_writable(path)
     started = timer.perf_counter()
+    # Every number of the mesh comes from export_data (positions, targets, skin): a per-person shape that
+    # params.npz may carry (the fitting work's ``shape_offset [V,3]``, the rig's template + offset) reaches
+    # this file once export_data applies it for the GLB; nothing here reads the rig's template itself.
     export, influences, larynx, features = export_data(params, rig, max_influences, larynx_error_cm, source,
                                                        morph_normals)
     from scene.usd.stage import build_stage
 
-    larynx_scale = within_unit_weights(export, len(rig.expression_names), len(larynx.taus))
+    plain_targets = len(export.target_names)
+    export, larynx_scale = within_unit_weights(export, len(rig.expression_names), len(larynx.taus))
     codes = time_codes(params)
     metadata = {"generator": "hackneck scene.usd (usd-core)", "source_units": "cm", "rig": str(params.rig or ""),
                 "rig_checksum": str(params.rig_checksum or ""), "producers": json.dumps(params.producers),
@@ -156,28 +165,13 @@ def export_usd(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
     report = UsdReport(
         path=path, format=fmt, units=units, points=rig.num_vertices, faces=len(rig.rig.faces), frames=len(params),
         fps=float(params.fps), influences=export.joints.shape[1], expression_targets=len(rig.expression_names),
-        larynx_targets=len(larynx.taus), corrective_targets=len(features), larynx_error_cm=larynx.error_cm,
-        bytes=size)
+        larynx_targets=len(larynx.taus), corrective_targets=len(features),
+        split_targets=len(export.target_names) - plain_targets, larynx_error_cm=larynx.error_cm,
+        larynx_scale=larynx_scale, bytes=size)
     report.seconds = timer.perf_counter() - started
     if check or influences.truncated:
         report.max_error_cm = export_error_cm(export, rig, params)
     return report
-
-
-def within_unit_weights(export: ExportData, first: int, count: int) -> float:
-    """Scale the ``count`` larynx targets from index ``first`` (in place) by the clip's largest larynx
-    weight ``s`` when it exceeds 1, dividing their weights by it: the targets become ``L(s, tau_k)`` and
-    their weights ``eta / s * hat_k(tau)`` stay in [0, 1] (eta >= 0).  USD does not clamp weights, but
-    Blender's USD importer gives every shape key the slider range [0, 1] and clamps to it, and a larynx
-    larger than the generic one has eta > 1.  Returns ``s`` (at most the clip's largest eta), or 1."""
-    columns = slice(first, first + count)
-    scale = max(1.0, float(np.abs(export.morph_weights[:, columns]).max(initial=0.0)))
-    if scale > 1.0:
-        export.targets[columns] = (export.targets[columns].astype(np.float64) * scale).astype(np.float32)
-        if len(export.normal_targets):
-            export.normal_targets[columns] = (export.normal_targets[columns] * scale).astype(np.float32)
-        export.morph_weights[:, columns] = (export.morph_weights[:, columns] / scale).astype(np.float32)
-    return scale
 
 
 def write_stage(stage, target: Path, fmt: str, name: str) -> None:
