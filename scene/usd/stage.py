@@ -162,6 +162,9 @@ def build_stage(export: ExportData, rig: HeadNeckModel, time_codes: np.ndarray, 
 
     binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
     binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    # Redundant for UsdSkel (the skeleton's animationSource binds it), but early usdz viewers (iOS 13's
+    # Quick Look) looked for it on the skinned mesh (noted in pkanyuk/PkUsdUtils' usdSkelAppleFixup).
+    binding.CreateAnimationSourceRel().SetTargets([animation.GetPath()])
     size = export.joints.shape[1]
     binding.CreateJointIndicesPrimvar(False, size).Set(Vt.IntArray.FromNumpy(
         export.joints[rows].reshape(-1).astype(np.int32)))
@@ -188,6 +191,7 @@ def build_stage(export: ExportData, rig: HeadNeckModel, time_codes: np.ndarray, 
     binding.CreateBlendShapeTargetsRel().SetTargets(targets)
 
     # material
+    UsdGeom.Scope.Define(stage, f"{ROOT}/Looks")
     material = UsdShade.Material.Define(stage, f"{ROOT}/Looks/skin")
     shader = UsdShade.Shader.Define(stage, f"{ROOT}/Looks/skin/surface")
     shader.CreateIdAttr("UsdPreviewSurface")
