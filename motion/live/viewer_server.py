@@ -177,7 +177,7 @@ class ViewerServer:
         self._lock = threading.Lock()
         self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
         self._wake, self._stop = threading.Event(), threading.Event()
-        listener = socket.create_server((host, port))
+        listener = socket.create_server((host, port), family=socket.AF_INET6 if ":" in host else socket.AF_INET)
         self.port = listener.getsockname()[1]
         self.hosts = own_hosts(host, self.port)
         self.any_ip = host in WILDCARD
