@@ -171,7 +171,7 @@ class ViewerServer:
         self.page = page.encode("utf-8")
         self.announce = announce
         self.inbox: deque = deque(maxlen=INBOX)
-        self.sent = self.dropped_clients = self.refused_connections = 0
+        self.sent = self.dropped_clients = self.refused_connections = 0   # dropped: for stalling (SEND_TIMEOUT)
         self.clients: set[_Connection] = set()        # open WebSockets, fed by the broadcaster
         self.connections: set[_Connection] = set()    # every connection holding a slot
         self._lock = threading.Lock()
@@ -283,7 +283,7 @@ class ViewerServer:
                 while connection.outbox:
                     connection.send(connection.outbox.popleft())
         except ConnectionClosed as closed:
-            if isinstance(closed.__cause__, (TimeoutError, OSError)) and not self._stop.is_set():
+            if isinstance(closed.__cause__, TimeoutError) and not self._stop.is_set():   # stalled: dropped
                 with self._lock:
                     self.dropped_clients += 1
         finally:
