@@ -371,7 +371,7 @@ def test_a_flooding_client_slows_neither_the_receiver_nor_the_others(live):
     """A client in another process sending masked pings as fast as the server takes them (and reading the
     pongs): it costs the server under 8 % of a core (reads throttled to READ_RATE; ~25 % without, on a loaded
     2-core machine), and the receiver's p99 (receipt -> params) and the broadcast p99 (params -> a reading
-    client) stay within the same measured without it (loosely: this machine's load is not ours to hold)."""
+    client) stay near the same measured without it (loosely: this machine's load is not ours to hold)."""
     rx, server = live
     host, port = server.address
     client = handshake((host, port), origin=f"http://{host}:{port}")
@@ -398,9 +398,11 @@ def test_a_flooding_client_slows_neither_the_receiver_nor_the_others(live):
                                                        ("quiet_broadcast", quiet_broadcast),
                                                        ("flooded_broadcast", flooded_broadcast))}
     print(f"flood: server CPU {100 * cpu_share:.1f} % of a core; p99 ms {p99}")
-    assert cpu_share < 0.08, cpu_share
-    assert p99["flooded"] < 1.5 * p99["quiet"] + 10.0, p99
-    assert p99["flooded_broadcast"] < 1.5 * p99["quiet_broadcast"] + 10.0, p99
+    assert cpu_share < 0.08, cpu_share          # the mechanism: what the flood takes from the receiver's CPU
+    # the effect, loosely (60 frames each, on a shared machine whose load moves p99 by 20 ms between runs; the
+    # hand-written server under a flood: +40-80 ms receiver, x4-8 broadcast, benchmarks/bench_live_page.py)
+    assert p99["flooded"] < 2 * p99["quiet"] + 20.0, p99
+    assert p99["flooded_broadcast"] < 2 * p99["quiet_broadcast"] + 20.0, p99
 
 
 def rss_mb() -> float:

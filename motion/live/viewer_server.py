@@ -246,6 +246,9 @@ class ViewerServer:
         with self._lock:
             self.connections.discard(connection)
             self.clients.discard(connection)
+            # a send (a frame, a ping, the page) that took SEND_TIMEOUT, by any of its threads: stalled, dropped
+            if isinstance(connection.connection_exc, TimeoutError) and not self._stop.is_set():
+                self.dropped_clients += 1
         self._slots.release()
 
     def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
@@ -282,10 +285,8 @@ class ViewerServer:
                     return
                 while connection.outbox:
                     connection.send(connection.outbox.popleft())
-        except ConnectionClosed as closed:
-            if isinstance(closed.__cause__, TimeoutError) and not self._stop.is_set():   # stalled: dropped
-                with self._lock:
-                    self.dropped_clients += 1
+        except ConnectionClosed:
+            pass                                    # closed by the client, a stall (counted on release), stop
         finally:
             with self._lock:
                 self.clients.discard(connection)
