@@ -39,7 +39,7 @@ from base.errors import InputError
 from base.files import atomic_folder, require_new_folder
 from motion.live.config import LiveConfig
 from motion.live.face_feed import FaceFeed, write_feed
-from motion.live.outputs import write_session
+from motion.live.outputs import SessionWriter, write_session
 from motion.live.receiver import LiveReceiver
 from motion.live.stream import StreamOptions
 from motion.live.viewer_server import start_viewer
@@ -60,14 +60,19 @@ def live_models(config: LiveConfig, announce=print) -> Models:
 
 
 def stream_options(config: LiveConfig) -> StreamOptions:
-    return StreamOptions(config.head_units, config.signs, config.recenter, config.eta, config.max_gap_seconds)
+    return StreamOptions(config.head_units, config.signs, config.recenter, config.eta, config.max_gap_seconds,
+                         config.max_lead_seconds)
 
 
 def finish(receiver: LiveReceiver, out_dir: Path, eta: float) -> dict:
-    """Write the session into ``out_dir``, whole or not at all; the summary."""
-    with atomic_folder(out_dir) as staging:
-        return write_session(staging, list(receiver.streams.values()), dict(receiver.rejected), eta,
-                             {"datagrams": receiver.received})
+    """End the session: with a writer (the command), every stream closed (its params.npz) and summary.json
+    written into ``out_dir``; without (tests, the benchmark), the whole session into ``out_dir`` at once."""
+    extra = {"datagrams": receiver.received}
+    if receiver.writer is None:
+        with atomic_folder(out_dir) as staging:
+            return write_session(staging, list(receiver.streams.values()), dict(receiver.rejected), eta, extra)
+    receiver.close_all("stop")
+    return receiver.writer.finish(dict(receiver.rejected), extra)
 
 
 def run_face(config: LiveConfig, models: Models, out_dir: Path, viewer, on_frame) -> dict:
@@ -116,11 +121,13 @@ def run(cfg) -> dict:
         return run_face(config, models, out_dir, viewer, on_frame)
     try:
         receiver = LiveReceiver(models, stream_options(config), config.host, config.port, config.max_phones,
-                                config.absurd_weight, on_frame=on_frame)
+                                config.absurd_weight, on_frame=on_frame, writer=SessionWriter(out_dir, config.eta),
+                                allow=config.allow, idle_seconds=config.idle_seconds)
     except OSError as e:
         if viewer is not None:
             viewer.close()
         raise InputError(f"host={config.host} port={config.port}: cannot listen ({e.strerror or e})") from None
+    out_dir.mkdir(parents=True)  # the session's folder, written as it goes (not a staging folder)
     stop = {"signal": None}
 
     def on_signal(number, _frame):
@@ -129,7 +136,8 @@ def run(cfg) -> dict:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     host, port = receiver.address
     until = f"for {config.duration:g} s" if config.duration else "until Ctrl-C"
-    print(f"live: listening on {host}:{port} (UDP, Live Link Face v6) {until}; writing {out_dir} at the end")
+    print(f"live: listening on {host}:{port} (UDP, Live Link Face v6) {until}; writing {out_dir} as it goes",
+          flush=True)
     failure = None
     try:
         receiver.run(config.duration, lambda: stop["signal"] is not None, config.tick_ms / 1000.0,
