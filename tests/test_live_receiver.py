@@ -221,3 +221,57 @@ def test_jump_and_rate_change_refused(receiver):
     assert stream.missing == 60 * 9 - 1 and stream.gaps == 1
     assert len(stream.recorded.tau) == 272 and stream.recorded.held == 270  # the grid up to 9.05 s (271.5 frames)
     assert stream.recorded.tau[2:] == [stream.recorded.tau[1]] * 270
+
+
+def test_allow_idle_and_failure_isolated(models, tmp_path):
+    """allow= refuses other senders unread; an idle stream is closed and written, freeing its slot; a stream
+    that raises is closed with its reason and what it received, the other goes on."""
+    from motion.live.outputs import SessionWriter
+
+    take = demo_as_take()
+    walled = LiveReceiver(models, stream_options(LiveConfig()), "127.0.0.1", 0, announce=lambda *_: None,
+                          allow=["10.0.0.0/8", "192.168.1.20"])
+    try:
+        assert send_and_drain(walled, [encode(DEVICE, "ana", take.frames[0], take.values[0])]) == 1
+        assert dict(walled.rejected) == {"not_allowed": 1} and not walled.streams
+    finally:
+        walled.close()
+    out = tmp_path / "live"
+    out.mkdir()
+    rx = LiveReceiver(models, stream_options(LiveConfig()), "127.0.0.1", 0, max_phones=2, announce=lambda *_: None,
+                      writer=SessionWriter(out, 1.0), idle_seconds=5.0)
+    try:
+        now, address = time.perf_counter_ns(), ("127.0.0.1", 40000)
+        for i in range(6):
+            rx.handle(encode(DEVICE, "ana", take.frames[i], take.values[i]), now, address)
+            rx.handle(encode("device-ben", "ben", take.frames[i], take.values[i]), now, ("127.0.0.1", 40001))
+        rx.flush()
+        rx.streams[("device-ben", "ben")].accept = lambda *_: 1 / 0  # a bug in one stream
+        rx.handle(encode("device-ben", "ben", take.frames[6], take.values[6]), now, ("127.0.0.1", 40001))
+        rx.handle(encode(DEVICE, "ana", take.frames[6], take.values[6]), now, address)
+        rx.flush()
+        assert list(rx.streams) == [(DEVICE, "ana")] and rx.rejected["stream_error"] == 1
+        assert rx.expire(now + 4_000_000_000) == 0 and rx.expire(now + 6_000_000_000) == 1 and not rx.streams
+        assert rx.handle(encode(DEVICE, "ana", take.frames[0], take.values[0]), now, ("127.0.0.1", 40002)) == 1
+        assert rx.streams[(DEVICE, "ana")].folder == "ana-6C3A2E5F-0000-4000-8000-000000000001"  # a new stream
+    finally:
+        rx.close()
+    ben = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else None
+    assert ben is None  # summary.json only at stop; the closed streams' params are already there
+    assert len(load_params(out / "ben" / "params.npz")) == 3 and len(load_params(out / "ana" / "params.npz")) == 4
+    assert (out / "ben" / "capture.csv").read_text().count("\n") == 1 + 6
+
+
+def test_names_safe():
+    """Control characters escaped in what is printed; subjects that clean to one folder name get distinct ones."""
+    from motion.live.outputs import FolderNames, printable
+
+    assert printable("\x1b[2Jred\x07") == "\\x1b[2Jred\\x07" and printable("\u202eevil") == "\\u202eevil"
+    assert printable("a" * 300, 10) == "a" * 10 + "..."
+    names = FolderNames()
+    taken = [names.take(subject, device) for subject, device in
+             [("a/b", "d1"), ("a_b", "d2"), ("A_B", "d3"), ("a_b", "d2"), ("summary.json", "d4"), ("../..", "d5"),
+              ("x" * 300, "d6")]]
+    assert taken[:3] == ["a_b", "a_b-d2", "A_B-d3"] and taken[3] == "a_b-2"
+    assert taken[4] == "summary.json-d4" and taken[5] == "_" and len(taken[6]) == 48
+    assert len({t.lower() for t in taken}) == len(taken)
