@@ -2,7 +2,7 @@
 face is lost for 4 s (what that adds to the next frame).
 
     python benchmarks/bench_live.py [--seconds 12] [--phones 1 4] [--face-loss 4] [--checkpoint default]
-                                    [--head2neck default] [--no-pin] [--repo PATH]
+                                    [--head2neck default] [--no-pin] [--repo PATH] [--direct]
 
 The receiver writes each phone's capture.csv as it goes (as ``python -m motion.live`` does) where the code
 measured does.  ``--repo``: the checkout whose receiver and sender are measured (default this one; e.g. an export of the
@@ -104,6 +104,40 @@ def watch_next_frame(receiver, device: str, frame: int) -> dict:
     return seen
 
 
+def direct(config: LiveConfig, face_loss: float, repeats: int = 3) -> dict:
+    """The receiver's own cost, without sockets or senders: each datagram of the demo take (``face_loss``
+    seconds lost from its 4th second) handled and flushed in this process as it would be on arrival, timed
+    from before ``handle`` to after ``flush``; ms per datagram that completes output frames (p50, p99) and for
+    the first datagram back after the loss (median over ``repeats`` takes)."""
+    from motion.live.packet import encode
+
+    take = demo_as_take()
+    lost = range(int(4.0 * take.rate), int((4.0 + face_loss) * take.rate))
+    costs, back = [], []
+    for _ in range(repeats):
+        models = live_models(config, announce=lambda *_: None)
+        receiver = LiveReceiver(models, stream_options(config), "127.0.0.1", 0, announce=lambda *_: None)
+        try:
+            for k, (frame, values) in enumerate(zip(take.frames, take.values)):
+                if k in lost:
+                    continue
+                data = encode("device-0", "phone0", int(frame), values)
+                cpu, started = time.thread_time_ns(), time.perf_counter_ns()
+                produced = receiver.handle(data, started)
+                receiver.flush()
+                ms = ((time.perf_counter_ns() - started) / 1e6, (time.thread_time_ns() - cpu) / 1e6)
+                getattr(receiver, "idle", lambda: None)()  # the ~16 ms between two datagrams are idle
+                if k == lost.stop:
+                    back.append(ms)
+                elif produced:
+                    costs.append(ms)
+        finally:
+            receiver.close()
+    costs, back = np.asarray(costs), np.asarray(back)
+    return {"p50_ms": np.percentile(costs, 50, axis=0), "p99_ms": np.percentile(costs, 99, axis=0),
+            "back_ms": np.median(back, axis=0)}
+
+
 def run(phones: int, seconds: float, config: LiveConfig, senders_cpus: set[int] | None = None,
         take: str = "demo", watch: int | None = None) -> dict:
     models = live_models(config, announce=lambda *_: None)
@@ -154,6 +188,8 @@ def main() -> None:
     parser.add_argument("--no-pin", action="store_true", help="receiver and senders share every CPU")
     parser.add_argument("--face-loss", type=float, default=4.0, help="seconds of lost face (0: no such run)")
     parser.add_argument("--repo", default=str(REPO), help="the checkout measured (default: this one)")
+    parser.add_argument("--direct", action="store_true", help="only the receiver's own cost per datagram, "
+                        "in process (no sockets, no senders): the face-loss take")
     args = parser.parse_args()
     torch.set_num_threads(1)
     receiver_cpus, senders_cpus = cpu_sets(not args.no_pin)
@@ -163,6 +199,13 @@ def main() -> None:
           f"{sorted(senders_cpus or os.sched_getaffinity(0))}")
     config = LiveConfig(checkpoint=args.checkpoint, head2neck=args.head2neck)
     print(f"code measured: {REPO}")
+    if args.direct:
+        r = direct(config, args.face_loss)
+        print(f"direct, face lost {args.face_loss:g} s: handle + flush per datagram completing output frames, wall "
+              f"(this thread's CPU): p50 {r['p50_ms'][0]:.2f} ({r['p50_ms'][1]:.2f}) ms, p99 {r['p99_ms'][0]:.2f} "
+              f"({r['p99_ms'][1]:.2f}) ms; the first datagram back {r['back_ms'][0]:.2f} ({r['back_ms'][1]:.2f}) ms "
+              f"(load average {os.getloadavg()[0]:.2f})")
+        return
     for phones in args.phones:
         started = time.perf_counter()
         r = run(phones, args.seconds, config, senders_cpus)

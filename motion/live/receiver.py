@@ -160,6 +160,10 @@ class LiveReceiver:
             self.close_stream(stream, f"idle for over {self.idle_seconds:g} s")
         return len(idle)
 
+    def idle(self) -> bool:
+        """Work done ahead while nothing arrives: one stream's larynx restart made ready (``prepare``)."""
+        return any(stream.prepare() for stream in self.streams.values())
+
     def flush(self) -> int:
         """Run the output frames the handled datagrams completed (``stream.run_pending``) and write the new
         capture.csv rows; how many frames ran.  A stream that fails in either is closed."""
@@ -223,6 +227,8 @@ class LiveReceiver:
                 break
             if self.wait(tick):
                 self.drain()
+            else:
+                self.idle()
             self.expire()
             if status_seconds and now - last_status >= status_seconds:
                 self.announce(self.status_line((self.received - last_received) / (now - last_status)))

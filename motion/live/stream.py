@@ -99,7 +99,7 @@ class PhoneStream:
         self.models, self.options = models, options
         larynx = models.larynx
         self.fps = float(larynx.fps) if larynx is not None else rate[0] / rate[1]
-        self.larynx = None
+        self.larynx = self.spare = None
         if larynx is not None:
             larynx.eval()
             self.larynx = self.fresh_larynx()
@@ -122,6 +122,19 @@ class PhoneStream:
 
     def fresh_larynx(self):
         return self.models.larynx.stream(1, torch.tensor([0]))  # 0: the average style, as predict_tau's None
+
+    def prepare(self) -> bool:
+        """Make the larynx stream a gap restarts from ahead (about two steps' cost), while the socket is idle,
+        not when the frame after a gap arrives; whether one was made."""
+        if self.larynx is None or self.spare is not None:
+            return False
+        self.spare = self.fresh_larynx()
+        return True
+
+    def restart(self) -> None:
+        """The gap rule's restart: the larynx model from its initial state (the one made ahead, if any)."""
+        if self.larynx is not None:
+            self.larynx, self.spare = (self.spare if self.spare is not None else self.fresh_larynx()), None
 
     @property
     def key(self) -> tuple[str, str]:
@@ -225,8 +238,7 @@ def _taus(stream: PhoneStream) -> list[float]:
     taus = []
     for item in stream.pending:
         if item[0] == "restart":
-            if stream.larynx is not None:
-                stream.larynx = stream.fresh_larynx()
+            stream.restart()
         elif item[0] == "frame":
             taus.append(0.0 if stream.larynx is None
                         else float(stream.larynx.step(torch.from_numpy(item[1])[None]).item()))
