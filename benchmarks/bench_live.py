@@ -168,6 +168,9 @@ def run(phones: int, seconds: float, config: LiveConfig, senders_cpus: set[int] 
     for p in senders:
         if p.returncode:
             raise SystemExit(f"sender failed: {p.stderr.read()}")
+    if len(receiver.streams) != phones:
+        raise SystemExit(f"{len(receiver.streams)} of {phones} phones' streams open at the end; refused "
+                         f"{dict(receiver.rejected)}; closed {getattr(receiver, 'closed', None)}")
     latency = np.concatenate([np.asarray(s.recorded.latency_ms) for s in receiver.streams.values()])
     if extra:
         shutil.rmtree(extra["writer"].out_dir, ignore_errors=True)
