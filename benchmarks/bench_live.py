@@ -146,6 +146,7 @@ def run(phones: int, seconds: float, config: LiveConfig, senders_cpus: set[int] 
         from motion.live.outputs import SessionWriter
         folder = Path(tempfile.mkdtemp(prefix="bench_live_"))
         extra["writer"] = SessionWriter(folder, config.eta)
+        extra["idle_seconds"] = 3600.0  # a phone's sender that starts late must not expire the others
     receiver = LiveReceiver(models, stream_options(config), "127.0.0.1", 0, config.max_phones,
                             announce=lambda *_: None, **extra)
     seen = watch_next_frame(receiver, "device-0", watch) if watch is not None else {}
