@@ -251,6 +251,9 @@ def test_allow_idle_and_failure_isolated(models, tmp_path):
         rx.handle(encode(DEVICE, "ana", take.frames[6], take.values[6]), now, address)
         rx.flush()
         assert list(rx.streams) == [(DEVICE, "ana")] and rx.rejected["stream_error"] == 1
+        spoof = encode(DEVICE, "ana", take.frames[100], take.values[7])  # a later frame, from another port
+        assert rx.handle(spoof, now, ("127.0.0.1", 49999)) == 0 and rx.rejected["address"] == 1
+        assert rx.streams[(DEVICE, "ana")].last_frame == int(take.frames[6])  # the phone's stream untouched
         assert rx.expire(now + 4_000_000_000) == 0 and rx.expire(now + 6_000_000_000) == 1 and not rx.streams
         assert rx.handle(encode(DEVICE, "ana", take.frames[0], take.values[0]), now, ("127.0.0.1", 40002)) == 1
         assert rx.streams[(DEVICE, "ana")].folder == "ana-6C3A2E5F-0000-4000-8000-000000000001"  # a new stream
