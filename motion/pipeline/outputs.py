@@ -16,6 +16,7 @@ from data.params import AnimationParams, load_params, save_params
 from models.rig import HeadNeckModel
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models
+from scene.characters import person_rig
 from scene.fbx import export_fbx
 from scene.gltf import export_glb
 from scene.preview import Panel, anatomical_degrees, write_preview
@@ -76,8 +77,10 @@ def plot_voice(axis, params: AnimationParams) -> None:
 @torch.no_grad()
 def write_meshes(folder: Path, rig: HeadNeckModel, params: AnimationParams, mesh_format: str = "ply",
                  batch: int = 64) -> int:
-    """Pose the rig for every frame and write ``frame_00000.<mesh_format>`` ... into ``folder``."""
+    """Pose the rig for every frame and write ``frame_00000.<mesh_format>`` ... into ``folder`` (``rig``: the
+    base rig; a fitted ``params.shape_offset`` is applied, ``scene.characters.person_rig``)."""
     folder.mkdir(parents=True, exist_ok=True)
+    rig = person_rig(rig, params)
     faces = rig.faces.numpy()
     count = len(params)
     with progress_bar(total=count, desc="meshes", unit="frame", disable=count < 64) as progress:

@@ -1,0 +1,161 @@
+"""Fitting's application (motion.fit) and what reads its outputs: the fit fields of params.npz, the person's rig,
+the training loaders (head2neck data=theta_seq, larynx_transformer data=pairs) on fit folders."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from base.errors import InputError
+from base.rotations import axis_angle_to_matrix
+from data.assets import RigData, with_shape_offset
+from data.expressions import EXPRESSION_NAMES
+from data.params import AnimationParams, load_params, rig_checksum, save_params
+from models.rig import HeadNeckModel
+from tests.conftest import REPO
+
+
+def fitted_params(rig: HeadNeckModel, frames: int = 20, seed: int = 0, fps: float = 30.0,
+                  shape: bool = True) -> AnimationParams:
+    """A clip as motion.fit writes it: theta[:, 0] = 0, a swaying placement, eta one value repeated, a residual,
+    a smooth shape offset."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames) / fps
+    anatomical = np.zeros((frames, rig.num_joints, 3))
+    anatomical[:, 1:, 0] = 0.05 * np.sin(2 * np.pi * 0.7 * t)[:, None]
+    anatomical[:, 1:, 1] = 0.04 * np.sin(2 * np.pi * 0.4 * t + 1.0)[:, None]
+    theta = rig.from_anatomical(torch.tensor(anatomical, dtype=torch.float32))
+    sway = torch.tensor(np.stack([0.1 * np.sin(t), 0.2 * np.cos(t), 0.05 * t], axis=1), dtype=torch.float32)
+    with torch.no_grad():
+        head = rig.head_rotation(theta).numpy()
+    offset = (0.3 * np.sin(rig.rig.template[:, [2, 0, 1]] / 9.0)).astype(np.float32) if shape else None
+    return AnimationParams(
+        time=t, fps=fps, psi=rng.uniform(0, 0.5, (frames, rig.num_expressions)), tau=0.02 * np.sin(3 * t),
+        eta=np.full(frames, 1.1 + 0.1 * seed), theta=theta.numpy(), head_rotation=head,
+        joint_names=rig.joint_names, expression_names=rig.expression_names, rig="builtin",
+        rig_checksum=rig_checksum(rig.rig), producers={"tool": "motion.fit"},
+        root_rotation=axis_angle_to_matrix(sway).numpy(), root_translation=rng.normal(0, 5, (frames, 3)),
+        fit_rms_mm=rng.uniform(0.1, 1.0, frames), shape_offset=offset)
+
+
+# ----------------------------------------------------------------------------- params.npz's fit fields
+
+
+def test_fit_fields_round_trip_and_default_to_none(tmp_path, builtin_rig):
+    params = fitted_params(builtin_rig)
+    save_params(tmp_path / "params.npz", params)
+    loaded = load_params(tmp_path / "params.npz")
+    for name in ("root_rotation", "root_translation", "fit_rms_mm", "shape_offset"):
+        assert np.array_equal(getattr(loaded, name), getattr(params, name)), name
+    plain = dataclasses.replace(params, root_rotation=None, root_translation=None, fit_rms_mm=None, shape_offset=None)
+    save_params(tmp_path / "plain.npz", plain)
+    loaded = load_params(tmp_path / "plain.npz")
+    assert all(getattr(loaded, n) is None for n in ("root_rotation", "root_translation", "fit_rms_mm", "shape_offset"))
+    with np.load(tmp_path / "plain.npz") as z:
+        assert "shape_offset" not in z.files
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"root_translation": np.zeros((19, 3))}, r"root_translation has shape \(19, 3\), expected \[20, 3\]"),
+    ({"fit_rms_mm": np.zeros((20, 1))}, r"fit_rms_mm has shape \(20, 1\), expected \[20\]"),
+    ({"shape_offset": np.zeros((10, 2))}, r"shape_offset has shape \(10, 2\), expected \[10, 3\]"),
+    ({"root_rotation": np.tile(2 * np.eye(3), (20, 1, 1))}, r"root_rotation at frame 0 is not a rotation"),
+    ({"root_rotation": None}, r"root_rotation and root_translation go together"),
+])
+def test_fit_fields_are_shape_checked_on_load_and_save(tmp_path, builtin_rig, change, message):
+    params = fitted_params(builtin_rig)
+    with pytest.raises(ValueError, match=message):
+        dataclasses.replace(params, **change)
+    stored = {k: v for k, v in vars(params).items() if k not in ("producers", "joint_names", "expression_names")}
+    stored.update({k: v for k, v in change.items() if v is not None})
+    if change.get("root_rotation", 0) is None:
+        del stored["root_rotation"]
+    arrays = {k: np.asarray(v) for k, v in stored.items() if v is not None}
+    np.savez(tmp_path / "bad.npz", **arrays, joint_names=np.array(params.joint_names),
+             expression_names=np.array(params.expression_names))
+    with pytest.raises(InputError, match=r"bad\.npz: " + message):
+        load_params(tmp_path / "bad.npz")
+    params.fit_rms_mm = np.zeros(3)   # changed after construction: refused on save, nothing written
+    with pytest.raises(ValueError, match=r"fit_rms_mm has shape \(3,\)"):
+        save_params(tmp_path / "later.npz", params)
+    assert not (tmp_path / "later.npz").exists()
+
+
+def test_the_persons_rig_is_the_template_plus_the_offset(builtin_rig):
+    offset = np.random.default_rng(1).normal(0, 0.2, builtin_rig.rig.template.shape)
+    person = with_shape_offset(builtin_rig.rig, offset)
+    assert np.allclose(person.template, builtin_rig.rig.template + offset, atol=1e-5)
+    assert person.skin_weights is builtin_rig.rig.skin_weights and with_shape_offset(builtin_rig.rig, None) is \
+        builtin_rig.rig
+    theta = torch.zeros(1, builtin_rig.num_joints, 3)
+    with torch.no_grad():
+        moved = HeadNeckModel(person)(theta) - builtin_rig(theta)
+    assert np.allclose(moved[0].numpy(), offset, atol=1e-4)    # at rest the offset is what moved
+    with pytest.raises(InputError, match=r"fit\.npz: shape_offset of shape \[3, 3\], expected \[5761, 3\]"):
+        with_shape_offset(builtin_rig.rig, np.zeros((3, 3)), "fit.npz")
+
+
+# ----------------------------------------------------------------------------- the loop: training on fits
+
+
+def test_head2neck_theta_seq_reads_fit_folders_and_checks_the_rig(tmp_path, builtin_rig, turned_rig_file):
+    from data.cervical_prior import load_theta_sequences
+    from tasks.head2neck import Task
+    from tests.test_head2neck import theta_seq_config
+
+    clips = [fitted_params(builtin_rig, frames=20 + 5 * k, seed=k) for k in range(3)]
+    for k, params in enumerate(clips):
+        save_params(tmp_path / "fits" / f"take{k}" / "params.npz", params)
+    loaded = load_theta_sequences(tmp_path / "fits", rig=builtin_rig.rig)
+    assert [len(s.theta) for s in loaded] == [20, 25, 30]
+    assert np.array_equal(loaded[2].theta, clips[2].theta)
+    single = load_theta_sequences(tmp_path / "fits" / "take1" / "params.npz", rig=builtin_rig.rig)
+    assert np.array_equal(single[0].theta, clips[1].theta)
+    task = Task(theta_seq_config(tmp_path / "fits", "builtin", "data.val_fraction=0.34"))
+    assert len(task.train["head"]) + len(task.val["head"]) == 75 and len(task.val["head"]) in (20, 25, 30)
+    with pytest.raises(InputError, match=r"take0/params\.npz: made with rig 'builtin' .* give rig= the rig"):
+        load_theta_sequences(tmp_path / "fits", rig=RigData.load(turned_rig_file))   # what Task passes: its rig=
+
+
+def test_larynx_pairs_read_a_folder_of_fit_folders_as_takes(tmp_path, builtin_rig):
+    from data.pairs import load_pairs, save_pair
+    from tasks.larynx_transformer import Task
+    from tests.test_larynx_transformer import make_sequence, tiny_config
+
+    clips = {}
+    for k, name in enumerate(["anna_walk", "ben_talk", "cleo_swallow"]):
+        params = fitted_params(builtin_rig, frames=240, seed=k, shape=False)
+        order = np.random.default_rng(k).permutation(len(EXPRESSION_NAMES))   # psi stored in another order
+        params = dataclasses.replace(params, psi=params.psi[:, order],
+                                     expression_names=[params.expression_names[i] for i in order])
+        save_params(tmp_path / "fits" / name / "params.npz", params)
+        clips[name] = params
+    save_pair(tmp_path / "fits" / "loose_clip01.npz", make_sequence(0, 0, 240, 30.0, seed=1))  # a pair file beside
+    pairs = load_pairs(tmp_path / "fits")
+    by_take = {p.take: p for p in pairs}
+    assert len(pairs) == 4 and {"anna_walk", "ben_talk", "cleo_swallow"} < set(by_take)
+    ben = by_take["ben_talk"]
+    column = clips["ben_talk"].expression_names.index(EXPRESSION_NAMES[7])
+    assert np.array_equal(ben.psi[:, 7], clips["ben_talk"].psi[:, column])
+    assert np.array_equal(ben.tau, clips["ben_talk"].tau) and ben.eta == pytest.approx(1.2) and ben.fps == 30.0
+    task = Task(tiny_config(["data=pairs", f"data.path={tmp_path / 'fits'}", "data.val_fraction=0.25",
+                             "task.crop=64", "model.window=16"], data=[]))
+    assert len(task.train) + len(task.val) == 4 and len(task.val) == 1
+
+
+def test_the_loaders_name_a_bad_fit(tmp_path, builtin_rig):
+    from data.cervical_prior import load_theta_sequences
+    from data.pairs import load_pairs
+
+    (tmp_path / "fits" / "broken").mkdir(parents=True)
+    (tmp_path / "fits" / "broken" / "params.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match=r"broken/params\.npz: not a readable \.npz"):
+        load_theta_sequences(tmp_path / "fits")
+    with pytest.raises(InputError, match=r"broken/params\.npz: not a readable \.npz"):
+        load_pairs(tmp_path / "fits")
+    (tmp_path / "none").mkdir()
+    with pytest.raises(InputError, match=r"none: no \.npz pair files and no fit folders"):
+        load_pairs(tmp_path / "none")
+    assert REPO.is_dir()
