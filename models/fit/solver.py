@@ -1,0 +1,305 @@
+"""Levenberg-Marquardt over a whole sequence: per-frame unknowns coupled by the temporal term, eta shared.
+
+The normal equations of T frames of P unknowns (``models.fit.linearise.FrameLayout``) are block-banded: the
+data term and E_rot give one P x P block per frame, the second differences couple frames t and t +- 1, 2.
+They are solved as one banded system (``scipy.linalg.solveh_banded``, lower bandwidth 2P: O(T P^3)), and
+eta, which every frame sees, by its Schur complement (one more right-hand side).  Coarse to fine: the
+stages free the placement, then theta, then psi, tau and eta (and the shape offset, ``models.fit.shape``).
+
+A data term is an object with ``rows(frames, q) -> (vertices, weights [b,n], targets [b,n,3],
+normals [b,n,3] | None)`` (``vertices`` [n] or None for all, the same for every frame of the call); the
+residual is ``sqrt(w) (q - y)`` per axis (meshes), or ``sqrt(w) [n.(q - y); sqrt(share) (q - y)]``
+(point-to-plane with a share of point-to-point, scans).
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import torch
+
+from base.rotations import axis_angle_to_euler
+from data.joint_limits import euler_limits
+from models.fit.linearise import RigLinearisation, rodrigues
+from models.fit.settings import FitSettings
+
+
+@dataclass
+class State:
+    """The unknowns of a sequence (torch float32): rigid [T, 6 + 3(J-1)], psi [T,E], tau [T], eta [1],
+    reference [3,3] (the placement's rotation is exp(r_t) @ reference), offset [V,3] or None."""
+
+    rigid: torch.Tensor
+    psi: torch.Tensor
+    tau: torch.Tensor
+    eta: torch.Tensor
+    reference: torch.Tensor
+    offset: torch.Tensor | None = None
+
+    def copy(self) -> State:
+        return State(self.rigid.clone(), self.psi.clone(), self.tau.clone(), self.eta.clone(),
+                     self.reference, None if self.offset is None else self.offset.clone())
+
+    def frames(self, index: slice):
+        rigid = self.rigid[index]
+        return (rigid, self.psi[index], self.tau[index], self.eta.expand(len(rigid)),
+                self.reference.expand(len(rigid), 3, 3))
+
+
+def geman_mcclure(squared: torch.Tensor, scale: float) -> torch.Tensor:
+    """IRLS weight of Geman-McClure's rho(r) = r^2 s^2 / (r^2 + s^2) at squared residual norms (cm^2)."""
+    return (scale**2 / (scale**2 + squared)) ** 2
+
+
+class Solver:
+    """One sequence's Levenberg-Marquardt (see the module docstring)."""
+
+    def __init__(self, lin: RigLinearisation, settings: FitSettings, data, num_frames: int,
+                 progress: Callable[[int], None] | None = None):
+        self.lin, self.settings, self.data, self.T = lin, settings, data, num_frames
+        self.layout = lin.layout
+        self.P = self.layout.size
+        self.progress = progress
+        self.damping = settings.damping
+        self.report: dict = {"iterations": [], "stages": []}
+        lower, upper = euler_limits()
+        self.limits = (lower[1:], upper[1:])
+        self.axes = lin.model.anatomical_axes[1:].float()
+        self._passes_total = 1
+        self._passes_done = 0
+
+    # ------------------------------------------------------------------ weights of the temporal term
+
+    def temporal_weights(self) -> np.ndarray:
+        """[P] inverse variances of each unknown's second difference (zero without the temporal term)."""
+        s, lay = self.settings, self.layout
+        w = np.zeros(self.P)
+        if not s.temporal or self.T < 3:
+            return w
+        w[lay.rotation] = 1 / math.radians(s.rotation_acceleration_deg) ** 2
+        w[lay.translation] = 1 / s.translation_acceleration_cm**2
+        w[lay.theta] = 1 / math.radians(s.theta_acceleration_deg) ** 2
+        w[lay.psi] = 1 / s.psi_acceleration**2
+        w[lay.tau] = 1 / s.tau_acceleration**2
+        return w
+
+    # ------------------------------------------------------------------ one linearisation of every frame
+
+    def normal_equations(self, state: State, robust_cm: float, with_eta: bool):
+        """Per frame H [T,P,P], g [T,P] (gradient of half the energy), data energy [T], the eta column
+        [T,P] and its diagonal entry and gradient; also the unweighted RMS per frame (cm)."""
+        T, P = self.T, self.P
+        H = np.zeros((T, P, P))
+        g = np.zeros((T, P))
+        energy = np.zeros(T)
+        rms = np.zeros(T)
+        h_eta = np.zeros((T, P))
+        eta_hh, eta_g = 0.0, 0.0
+        inv_noise = 1.0 / self.settings.noise_cm
+        for start in range(0, T, self.settings.chunk):
+            index = slice(start, min(start + self.settings.chunk, T))
+            frames = list(range(index.start, index.stop))
+            probe = self.lin.pose(*state.frames(index), offset=state.offset)
+            vertices, weights, targets, normals = self.data.rows(frames, probe)
+            q, jac, deta, _ = self.lin.linearise(*state.frames(index), offset=state.offset, vertices=vertices)
+            diff = q - targets                                               # [b,n,3]
+            if normals is None:
+                squared = (diff * diff).sum(-1)
+            else:
+                along = (diff * normals).sum(-1)
+                share = self.settings.scan_plane_share
+                squared = along**2 + share * (diff * diff).sum(-1)
+            w = weights * geman_mcclure(squared, robust_cm) * inv_noise**2   # [b,n]
+            total = weights.sum(1).clamp_min(1e-9)
+            rms[index] = (((weights * squared).sum(1) / total).sqrt()).double().numpy()
+            root = w.sqrt()[..., None]
+            if normals is None:
+                rows_j = (root[..., None] * jac).reshape(len(frames), -1, P)
+                rows_r = (root * diff).reshape(len(frames), -1)
+                rows_e = (root * deta).reshape(len(frames), -1)
+            else:
+                share = math.sqrt(self.settings.scan_plane_share)
+                nj = torch.einsum("bnc,bncp->bnp", normals, jac)
+                rows_j = torch.cat([(root * nj)[:, :, None], share * root[..., None] * jac], dim=2)
+                rows_j = rows_j.reshape(len(frames), -1, P)
+                rows_r = torch.cat([(root[..., 0] * along)[..., None], share * root * diff], -1).reshape(
+                    len(frames), -1)
+                ne = (normals * deta).sum(-1)
+                rows_e = torch.cat([(root[..., 0] * ne)[..., None], share * root * deta], -1).reshape(
+                    len(frames), -1)
+            H[index] = (rows_j.transpose(1, 2) @ rows_j).double().numpy()
+            g[index] = (rows_j.transpose(1, 2) @ rows_r[..., None])[..., 0].double().numpy()
+            energy[index] = (w * squared).sum(1).double().numpy()
+            if with_eta:
+                h_eta[index] = (rows_j.transpose(1, 2) @ rows_e[..., None])[..., 0].double().numpy()
+                eta_hh += float((rows_e * rows_e).sum())
+                eta_g += float((rows_e * rows_r).sum())
+            self._passes_done += len(frames) / T
+            if self.progress is not None:
+                self.progress(min(T, int(T * self._passes_done / self._passes_total)))
+        return H, g, energy, rms, (h_eta, eta_hh, eta_g)
+
+    # ------------------------------------------------------------------ priors on one frame
+
+    def limit_terms(self, state: State):
+        """E_rot (joint limits) per frame: H [T,P,P], g [T,P], energy [T]."""
+        T, P, lay = self.T, self.P, self.layout
+        H = np.zeros((T, P, P))
+        g = np.zeros((T, P))
+        energy = np.zeros(T)
+        if self.settings.limit_deg <= 0:
+            return H, g, energy
+        sigma = math.radians(self.settings.limit_deg)
+        theta = state.rigid[:, lay.theta].reshape(T, -1, 3).clone().requires_grad_(True)
+        anatomical = torch.einsum("jab,tja->tjb", self.axes, theta)
+        euler = axis_angle_to_euler(anatomical)
+        lower, upper = self.limits
+        residual = ((torch.relu(euler - upper) - torch.relu(lower - euler)) / sigma).reshape(T, -1)  # [T,K]
+        active = residual.detach().abs().sum(0) > 0
+        if not bool(active.any()):
+            return H, g, energy
+        jac = torch.zeros(T, residual.shape[1], theta[0].numel())
+        for k in torch.nonzero(active).flatten().tolist():
+            (grad,) = torch.autograd.grad(residual[:, k].sum(), theta, retain_graph=True)
+            jac[:, k] = grad.reshape(T, -1)
+        r = residual.detach().double().numpy()
+        j = jac.double().numpy()
+        H[:, lay.theta, lay.theta] = np.einsum("tki,tkl->til", j, j)
+        g[:, lay.theta] = np.einsum("tki,tk->ti", j, r)
+        energy[:] = (r**2).sum(1)
+        return H, g, energy
+
+    def psi_terms(self, state: State):
+        """The weak pull of psi to zero: diagonal [E], g [T,E], energy [T]."""
+        w = 1.0 / self.settings.psi_scale**2
+        psi = state.psi.double().numpy()
+        return w, w * psi, w * (psi**2).sum(1)
+
+    # ------------------------------------------------------------------ the banded solve
+
+    def temporal_energy(self, values: np.ndarray, weights: np.ndarray) -> float:
+        if self.T < 3 or not weights.any():
+            return 0.0
+        second = values[:-2] - 2 * values[1:-1] + values[2:]
+        return float((second**2 * weights).sum())
+
+    def solve(self, H, g, weights, mask, eta_terms, damping: float):
+        """Solve (H + temporal + damping) dx = -g per the mask [P] of free unknowns; returns dx [T,P], d_eta."""
+        T, P = self.T, self.P
+        n = T * P
+        H = H.copy()
+        g = g.copy()
+        free = mask.astype(bool)
+        H[:, ~free, :] = 0
+        H[:, :, ~free] = 0
+        g[:, ~free] = 0
+        diag = np.einsum("tii->ti", H)
+        diag += damping * diag + 1e-9
+        diag[:, ~free] = 1.0
+        w = weights * free
+        bands = 2 * P if T >= 3 and w.any() else P - 1
+        ab = np.zeros((bands + 1, n))
+        for d in range(P):
+            ab[d].reshape(T, P)[:, : P - d] = np.diagonal(H, offset=-d, axis1=1, axis2=2)
+        if bands >= 2 * P:
+            # D^T D of the second differences: diagonal (1, 5, 6, ..., 6, 5, 1), first (-2, -4, ..., -4, -2),
+            # second (1, ..., 1).
+            main = np.full(T, 6.0)
+            main[[0, -1]] = 1
+            main[[1, -2]] = 5
+            first = np.full(T - 1, -4.0)
+            first[[0, -1]] = -2
+            ab[0] += (main[:, None] * w).reshape(-1)
+            ab[P, : n - P] += (first[:, None] * w).reshape(-1)
+            ab[2 * P, : n - 2 * P] += np.tile(w, T - 2)
+        h_eta, eta_hh, _ = eta_terms
+        rhs = [-g.reshape(-1)]
+        if eta_hh > 0:
+            he = h_eta.copy()
+            he[:, ~free] = 0
+            rhs.append(he.reshape(-1))
+        solution = scipy.linalg.solveh_banded(ab, np.stack(rhs, 1), lower=True)
+        dx = solution[:, 0]
+        d_eta = 0.0
+        if eta_hh > 0:
+            _, hh, ge = eta_terms
+            z = solution[:, 1]
+            schur = hh * (1 + damping) - he.reshape(-1) @ z
+            d_eta = (-ge - he.reshape(-1) @ dx) / max(schur, 1e-12)
+            dx = dx - z * d_eta
+        return dx.reshape(T, P), d_eta
+
+    # ------------------------------------------------------------------ the stages
+
+    def temporal_gradient(self, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """Gradient of half the temporal energy: D^T D x per unknown, weighted [T,P]."""
+        out = np.zeros_like(values)
+        if self.T < 3 or not weights.any():
+            return out
+        second = values[:-2] - 2 * values[1:-1] + values[2:]
+        out[:-2] += second
+        out[1:-1] -= 2 * second
+        out[2:] += second
+        return out * weights
+
+    def flat(self, state: State) -> np.ndarray:
+        return torch.cat([state.rigid, state.psi, state.tau[:, None]], 1).double().numpy()
+
+    def apply(self, state: State, dx: np.ndarray, d_eta: float) -> State:
+        new = state.copy()
+        lay = self.layout
+        step = torch.tensor(dx, dtype=torch.float32)
+        new.rigid = state.rigid + step[:, lay.rigid]
+        new.psi = (state.psi + step[:, lay.psi]).clamp(0, 1)
+        new.tau = state.tau + step[:, lay.tau]
+        new.eta = state.eta + d_eta
+        return new
+
+    def run_stage(self, state: State, mask: np.ndarray, iterations: int, robust: list[float], with_eta: bool,
+                  name: str, after_step: Callable[[State], State] | None = None) -> State:
+        weights = self.temporal_weights()
+        started = time.perf_counter()
+        previous = None
+        k = 0
+        attempts = 0
+        while k < iterations and attempts < 3 * iterations:
+            attempts += 1
+            robust_cm = robust[min(k, len(robust) - 1)]
+            H, g, data_energy, rms, eta_terms = self.normal_equations(state, robust_cm, with_eta)
+            HL, gL, eL = self.limit_terms(state)
+            x = self.flat(state)
+            total = (data_energy.sum() + eL.sum() + self.temporal_energy(x, weights)
+                     + self.psi_terms(state)[2].sum())
+            if previous is not None and total > previous[0] * (1 + 1e-6) and previous[2] == robust_cm:
+                state = previous[1]          # the step made it worse: back, more damping, and again
+                self.damping *= 10
+                continue
+            self.damping = max(self.damping / 3, 1e-7)
+            self.data_hessian = H.copy()
+            H += HL
+            g += gL + self.temporal_gradient(x, weights)
+            wp, gp, _ = self.psi_terms(state)
+            lay = self.layout
+            H[:, lay.psi, lay.psi] += np.eye(lay.num_expressions) * wp
+            g[:, lay.psi] += gp
+            self.rms = rms
+            dx, d_eta = self.solve(H, g, weights, mask, eta_terms, self.damping)
+            previous = (total, state, robust_cm)
+            state = self.apply(state, dx, d_eta if with_eta else 0.0)
+            if after_step is not None:
+                state = after_step(state)
+            self.report["iterations"].append({"stage": name, "energy": float(total), "robust_cm": robust_cm,
+                                              "damping": self.damping})
+            k += 1
+        self.report["stages"].append({"stage": name, "seconds": time.perf_counter() - started,
+                                      "attempts": attempts})
+        return state
+
+
+def placement_of(state: State) -> tuple[torch.Tensor, torch.Tensor]:
+    """root_rotation [T,3,3], root_translation [T,3] of a state."""
+    return rodrigues(state.rigid[:, 0:3]) @ state.reference, state.rigid[:, 3:6]
