@@ -38,10 +38,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import models.fit
 from base.cli import REQUIRED, register_config, to_dataclass
+from base.errors import InputError
 from base.files import atomic_folder, require_new_folder
 from base.progress import progress_bar
-from models.fit import FitSettings, fit_meshes, fit_scans
+from models.fit import FitSettings
 from models.rig import HeadNeckModel
 from motion.fit.inputs import KINDS, UNITS_CM, read_capture
 from motion.fit.outputs import fit_params, fit_report, plot_fit, summary_lines, write_report
@@ -100,6 +102,14 @@ def solver_settings(settings: FitCli) -> FitSettings:
     return FitSettings(**values)
 
 
+def fitter(kind: str):
+    """``models.fit.fit_meshes`` or ``fit_scans``."""
+    name = "fit_meshes" if kind == "meshes" else "fit_scans"
+    if not hasattr(models.fit, name):
+        raise InputError(f"kind={kind}: this version of models.fit has no {name} yet")
+    return getattr(models.fit, name)
+
+
 def rig_label(rig: str) -> str:
     return "builtin" if rig in ("", "builtin") else str(Path(rig).resolve())
 
@@ -122,7 +132,7 @@ def run(cfg) -> dict:
     seconds["read"] = time.perf_counter() - started
 
     solver = solver_settings(settings)
-    fit = fit_meshes if settings.kind == "meshes" else fit_scans
+    fit = fitter(settings.kind)
     started = time.perf_counter()
     with progress_bar(total=len(capture), desc="fitting", unit="frame", disable=not settings.progress) as bar:
         result = fit(model, capture.frames, solver, progress=lambda k: bar.update(k - bar.n))
