@@ -142,14 +142,20 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
     has none, holds a non-finite one, or is of another format."""
     path = require_file(path)
     suffix = path.suffix.lower()
-    if suffix == ".ply":
-        vertices = read_ply(path).vertices
-    elif suffix == ".obj":
-        vertices = read_obj(path, vertices_only=True).vertices
+    try:
+        if suffix == ".ply":
+            vertices = read_ply(path).vertices
+        elif suffix == ".obj":
+            vertices = read_obj(path, vertices_only=True).vertices
+        else:
+            vertices = None
+    except OSError as e:   # permissions, a device error: the file exists but cannot be read
+        raise InputError(f"{path}: cannot be read ({e.strerror or e}); expected a mesh or point cloud") from None
+    if suffix == ".obj":
         bad = ~np.isfinite(vertices).all(axis=1)
         if bad.any():
             raise InputError(f"{path}: vertex {int(np.argmax(bad)) + 1} ('v' record) is not finite")
-    else:
+    elif vertices is None:
         raise InputError(f"{path}: a {suffix or 'suffix-less'} file; expected a mesh or point cloud (.obj or .ply)")
     return vertices
 

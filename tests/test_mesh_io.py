@@ -144,3 +144,13 @@ def test_read_points_takes_obj_and_ply_and_refuses_other_files(tmp_path):
     (tmp_path / "a.stl").write_text("solid")
     with pytest.raises(InputError, match=r"a\.stl: a \.stl file; expected a mesh or point cloud"):
         read_points(tmp_path / "a.stl")
+
+
+def test_ply_ascii_records_must_each_hold_their_numbers(tmp_path):
+    """The right total count of numbers spread wrongly over the lines is still an error naming the line."""
+    from data.mesh_io import read_ply
+
+    head = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    (tmp_path / "shifted.ply").write_text(head + "0 0\n1 0 0 0\n")
+    with pytest.raises(InputError, match=r"shifted\.ply: line 8: 2 numbers, expected 3"):
+        read_ply(tmp_path / "shifted.ply")
