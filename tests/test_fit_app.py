@@ -271,3 +271,35 @@ def test_motion_fit_refuses_bad_input_naming_the_file_and_writes_nothing(tmp_pat
         assert exit_.value.code == 2 and len(err.strip().splitlines()) == 1, (name, err)
         assert __import__("re").search(message, err), (name, err)
         assert not out.exists() and not list(tmp_path.glob(f".out_{name}*")), name   # nothing, not even staging
+
+
+def test_read_capture_orders_frames_converts_units_and_takes_any_scan(tmp_path, builtin_rig):
+    """Frames in natural name order (frame_2 before frame_10), mm -> cm; scans of any count (a front half, in
+    ascii PLY and OBJ); an .npz of vertices; a partial scan passes the size check, a scan in the wrong units
+    does not."""
+    from data.mesh_io import write_obj, write_ply
+    from motion.fit import read_capture
+
+    template = builtin_rig.rig.template.astype(np.float64)
+    for k in (10, 2, 1):
+        write_ply(tmp_path / "meshes" / f"frame_{k}.ply", template * 10 + k, builtin_rig.rig.faces)
+    capture = read_capture(str(tmp_path / "meshes"), "meshes", "mm", template)
+    assert [n.rsplit("/", 1)[-1] for n in capture.names] == ["frame_1.ply", "frame_2.ply", "frame_10.ply"]
+    assert capture.frames.shape == (3, len(template), 3)
+    assert np.allclose(capture.frames[2], template + 1.0, atol=1e-4)      # 10 mm = 1 cm
+    np.savez(tmp_path / "take.npz", vertices=np.stack([template / 100, template / 100 + 0.01]))
+    assert np.allclose(read_capture(str(tmp_path / "take.npz"), "meshes", "m", template).frames[1], template + 1,
+                       atol=1e-4)
+    front = template[template[:, 2] > np.median(template[:, 2])]
+    (tmp_path / "scans").mkdir()
+    ascii_body = "".join(f"{x:.4f} {y:.4f} {z:.4f}\n" for x, y, z in front[::2] * 10)
+    (tmp_path / "scans" / "a.ply").write_text(f"ply\nformat ascii 1.0\nelement vertex {len(front[::2])}\n"
+                                              "property float x\nproperty float y\nproperty float z\nend_header\n"
+                                              + ascii_body)
+    write_obj(tmp_path / "scans" / "b.obj", front * 10, np.zeros((0, 3), int))
+    scans = read_capture(str(tmp_path / "scans"), "scans", "mm", template)
+    assert [len(s) for s in scans.frames] == [len(front[::2]), len(front)]
+    assert np.allclose(scans.frames[1], front, atol=1e-4)
+    with pytest.raises(InputError, match=r"a\.ply: the capture is \d+ cm across with units=cm, [\d.]+x the rig's .*; "
+                                         r"units=mm\?"):
+        read_capture(str(tmp_path / "scans"), "scans", "cm", template)

@@ -43,6 +43,8 @@ from base.cli import REQUIRED, register_config, to_dataclass
 from base.errors import InputError
 from base.files import atomic_folder, require_new_folder
 from base.progress import progress_bar
+from data.assets import RigData
+from data.procedural_rig import build_procedural_rig
 from models.fit import FitSettings
 from models.rig import HeadNeckModel
 from motion.fit.inputs import KINDS, UNITS_CM, read_capture
@@ -122,14 +124,14 @@ def run(cfg) -> dict:
     out_dir = Path(settings.out_dir)
     require_new_folder(out_dir)
     started = time.perf_counter()
-    model = HeadNeckModel.from_config(settings.rig)
-    seconds = {"rig": time.perf_counter() - started}
-
-    started = time.perf_counter()
+    rig = build_procedural_rig() if settings.rig in ("", "builtin") else RigData.load(settings.rig)
     with progress_bar(desc="reading", unit="frame", disable=not settings.progress) as bar:
-        capture = read_capture(settings.input, settings.kind, settings.units, model.rig.template,
+        capture = read_capture(settings.input, settings.kind, settings.units, rig.template,
                                progress=lambda k: bar.update(k - bar.n))
-    seconds["read"] = time.perf_counter() - started
+    seconds = {"read": time.perf_counter() - started}
+    started = time.perf_counter()
+    model = HeadNeckModel(rig)   # after reading: bad input is refused before the rig's set-up
+    seconds["rig"] = time.perf_counter() - started
 
     solver = solver_settings(settings)
     fit = fitter(settings.kind)
