@@ -154,3 +154,21 @@ def test_ply_ascii_records_must_each_hold_their_numbers(tmp_path):
     (tmp_path / "shifted.ply").write_text(head + "0 0\n1 0 0 0\n")
     with pytest.raises(InputError, match=r"shifted\.ply: line 8: 2 numbers, expected 3"):
         read_ply(tmp_path / "shifted.ply")
+
+
+def test_ply_scanner_layout_with_colours_and_extra_face_properties(tmp_path):
+    """A scanner's binary PLY: double positions, uchar colours and a float confidence between them, faces with
+    a ushort count type, uint indices and a per-face int after the list."""
+    from data.mesh_io import read_ply
+
+    header = (b"ply\nformat binary_big_endian 1.0\nobj_info scanner\nelement vertex 8\nproperty double x\n"
+              b"property uchar red\nproperty uchar green\nproperty uchar blue\nproperty double y\nproperty float "
+              b"confidence\nproperty double z\nelement face 3\nproperty list ushort uint vertex_index\n"
+              b"property int flags\nend_header\n")
+    vertex = np.zeros(8, dtype=[("x", ">f8"), ("rgb", "u1", 3), ("y", ">f8"), ("c", ">f4"), ("z", ">f8")])
+    vertex["x"], vertex["y"], vertex["z"], vertex["rgb"] = CUBE[:, 0], CUBE[:, 1], CUBE[:, 2], 200
+    face = np.zeros(3, dtype=[("n", ">u2"), ("idx", ">u4", 4), ("flags", ">i4")])
+    face["n"], face["idx"], face["flags"] = 4, QUADS, -1
+    (tmp_path / "scan.ply").write_bytes(header + vertex.tobytes() + face.tobytes())
+    mesh = read_ply(tmp_path / "scan.ply")
+    assert np.array_equal(mesh.vertices, CUBE) and mesh.faces.tolist() == QUADS and mesh.normals is None
