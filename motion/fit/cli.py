@@ -34,6 +34,7 @@ source=OUT/params.npz`` and every exporter.
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -112,6 +113,14 @@ def fitter(kind: str):
     return getattr(models.fit, name)
 
 
+def name_frame(message: str, names: list[str]) -> str:
+    """``message`` with the input file of the first ``frame <k>`` it mentions."""
+    found = re.search(r"frame (\d+)", message)
+    if found and int(found.group(1)) < len(names):
+        return f"{message} (frame {found.group(1)} is {names[int(found.group(1))]})"
+    return message
+
+
 def rig_label(rig: str) -> str:
     return "builtin" if rig in ("", "builtin") else str(Path(rig).resolve())
 
@@ -137,7 +146,10 @@ def run(cfg) -> dict:
     fit = fitter(settings.kind)
     started = time.perf_counter()
     with progress_bar(total=len(capture), desc="fitting", unit="frame", disable=not settings.progress) as bar:
-        result = fit(model, capture.frames, solver, progress=lambda k: bar.update(k - bar.n))
+        try:
+            result = fit(model, capture.frames, solver, progress=lambda k: bar.update(k - bar.n))
+        except InputError as e:   # the solver names a frame by its index: name its file too
+            raise InputError(name_frame(str(e), capture.names)) from None
     seconds["fit"] = time.perf_counter() - started
 
     started = time.perf_counter()
