@@ -7,6 +7,7 @@ x_rig + root_translation``; theta in the rig's bone frames with theta[:, 0] (c7t
 folded into the placement.
 """
 from models.fit.meshes import fit_meshes
+from models.fit.scans import fit_scans
 from models.fit.settings import FitResult, FitSettings
 
-__all__ = ["FitResult", "FitSettings", "fit_meshes"]
+__all__ = ["FitResult", "FitSettings", "fit_meshes", "fit_scans"]

@@ -98,12 +98,23 @@ class RigLinearisation:
         """rigid [B, 6 + 3(J-1)] (r, t, theta[1:]), reference [B,3,3] -> C [B,J,3,4]."""
         batch = rigid.shape[0]
         theta = torch.cat([rigid.new_zeros(batch, 1, 3), rigid[:, 6:].reshape(batch, -1, 3)], dim=1)
-        world = forward_kinematics(rodrigues(theta), self.model.rest_local, self.parents)
-        bones = skinning_transforms(world, self.model.rest_world_inverse)  # [B,J,3,4]
+        world = forward_kinematics(rodrigues(theta), self.model.rest_local.to(rigid.dtype), self.parents)
+        bones = skinning_transforms(world, self.model.rest_world_inverse.to(rigid.dtype))  # [B,J,3,4]
         rotation = rodrigues(rigid[:, 0:3]) @ reference                    # [B,3,3]
         linear = rotation[:, None] @ bones[..., :3]
         shift = (rotation[:, None] @ bones[..., 3:])[..., 0] + rigid[:, None, 3:6]
         return torch.cat([linear, shift[..., None]], dim=-1)
+
+    def transform_derivatives(self, rigid: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+        """dC/d(r, t, theta) [B,J,3,4,R] by central differences in float64 (one batched call of a few hundred
+        numbers per frame; forward-mode autograd through the kinematic chain costs ten times more)."""
+        batch, size = rigid.shape
+        h = 1e-5
+        steps = torch.cat([torch.eye(size, dtype=torch.float64), -torch.eye(size, dtype=torch.float64)]) * h
+        moved = (rigid.double()[:, None] + steps[None]).reshape(-1, size)
+        ref = reference.double()[:, None].expand(batch, 2 * size, 3, 3).reshape(-1, 3, 3)
+        out = self.transforms(moved, ref).reshape(batch, 2, size, -1, 3, 4)
+        return ((out[:, 0] - out[:, 1]) / (2 * h)).permute(0, 2, 3, 4, 1).float()
 
     def rest(self, theta_rest: torch.Tensor, psi: torch.Tensor, tau: torch.Tensor, eta: torch.Tensor,
              offset: torch.Tensor | None, vertices: torch.Tensor | None = None) -> torch.Tensor:
@@ -157,9 +168,7 @@ class RigLinearisation:
         plus dq/deta [B,n,3] and the blended 3x3 [B,n,3,3] (for the shape offset)."""
         batch = rigid.shape[0]
         layout = self.layout
-        # Frames are independent, so one tangent per unknown moved in every frame at once gives each frame's
-        # derivatives: [B,J,3,4,R].
-        jac_c = torch.func.jacfwd(lambda d: self.transforms(rigid + d, reference))(rigid.new_zeros(rigid.shape[1]))
+        jac_c = self.transform_derivatives(rigid, reference)
         with torch.no_grad():
             x = self.rest(rigid[:, 6:].reshape(batch, -1, 3), psi, tau, eta, offset, vertices)
             weights = self.weights if vertices is None else self.weights[vertices]

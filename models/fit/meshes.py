@@ -19,12 +19,12 @@ from models.rig import HeadNeckModel
 class MeshData:
     """Known correspondences: the capture's vertices [T,V,3] (cm) are the targets of the rig's."""
 
-    def __init__(self, vertices: torch.Tensor):
+    def __init__(self, vertices: torch.Tensor, weights: torch.Tensor | None = None):
         self.vertices = vertices
-        self.ones = torch.ones(vertices.shape[1])
+        self.weights = torch.ones(vertices.shape[:2]) if weights is None else weights   # [T,V]
 
     def rows(self, frames: list[int], q: torch.Tensor):
-        return None, self.ones.expand(len(frames), -1), self.vertices[frames], None
+        return None, self.weights[frames], self.vertices[frames], None
 
 
 def check_meshes(model: HeadNeckModel, vertices) -> np.ndarray:
@@ -50,12 +50,19 @@ def fit_meshes(model: HeadNeckModel, vertices: np.ndarray, settings: FitSettings
     settings = FitSettings() if settings is None else settings
     check_finite_settings(settings)
     targets = torch.tensor(check_meshes(model, vertices))
-    weights = model.skin_weights[:, 0] + model.skin_weights[:, 1]
-    rotation, translation = kabsch(model.template.float(), targets, weights.float())
+    return fit_weighted_meshes(model, targets, None, settings, progress)
+
+
+def fit_weighted_meshes(model: HeadNeckModel, targets: torch.Tensor, weights: torch.Tensor | None,
+                        settings: FitSettings, progress: Callable[[int], None] | None = None) -> FitResult:
+    """``fit_meshes`` on checked targets [T,V,3] with per-vertex weights [T,V] (None: all 1; 0 = unseen)."""
+    lower_neck = (model.skin_weights[:, 0] + model.skin_weights[:, 1]).float()
+    seen = lower_neck if weights is None else lower_neck * weights.float().mean(0)
+    rotation, translation = kabsch(model.template.float(), targets, seen)
     state = initial_state(model, rotation, translation)
     shape_step = None
     if settings.fit_shape:
         from models.fit.shape import ShapeOffset
 
         shape_step = ShapeOffset(model, settings).step
-    return fit_sequence(model, MeshData(targets), state, settings, progress, shape_step)
+    return fit_sequence(model, MeshData(targets, weights), state, settings, progress, shape_step)

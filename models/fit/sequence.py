@@ -94,6 +94,8 @@ def final_rms(lin: RigLinearisation, data, state: State, settings: FitSettings) 
         diff = q - targets
         squared = (diff * diff).sum(-1) if normals is None else (diff * normals).sum(-1) ** 2
         out[index] = ((weights * squared).sum(1) / weights.sum(1).clamp_min(1e-9)).sqrt().double().numpy()
+        if hasattr(data, "point_rms"):   # scans: the points' own RMS distance, not their per-vertex means'
+            out[index] = [data.point_rms[k] for k in range(index.start, index.stop)]
     return out
 
 

@@ -5,7 +5,8 @@ covariance and ``joint_uncertainty_deg`` is in degrees):
 
 - data: capture minus posed rig over ``noise_cm`` (per axis), robustly weighted (Geman-McClure, scale
   ``robust_scale_cm``, annealed from ``robust_start_cm`` over the stages);
-- temporal: each unknown's second difference across frames over its ``*_acceleration`` (per frame^2);
+- temporal: the second difference across frames of the placement, theta and tau over its ``*_acceleration``
+  (per frame^2; psi is per frame);
 - E_rot (Zhang et al., HACK, SIGGRAPH 2023): each joint's Euler angles outside ``data.joint_limits`` over
   ``limit_deg``;
 - psi: a weak pull to zero (``psi_scale``); psi is kept in [0, 1].
@@ -30,7 +31,6 @@ class FitSettings:
     theta_acceleration_deg: float = 0.3  # std of a joint angle's second difference per frame^2
     rotation_acceleration_deg: float = 0.3   # ... of the placement's rotation
     translation_acceleration_cm: float = 0.05  # ... of the placement's translation
-    psi_acceleration: float = 0.05       # ... of an expression weight
     tau_acceleration: float = 0.002      # ... of tau
     limit_deg: float = 1.0               # E_rot: std of an angle beyond its joint limit (0 disables E_rot)
     psi_scale: float = 3.0               # std of the weak pull of psi to zero

@@ -75,7 +75,8 @@ class Solver:
     # ------------------------------------------------------------------ weights of the temporal term
 
     def temporal_weights(self) -> np.ndarray:
-        """[P] inverse variances of each unknown's second difference (zero without the temporal term)."""
+        """[P] inverse variances of each unknown's second difference (zero without the temporal term; psi is
+        fitted per frame)."""
         s, lay = self.settings, self.layout
         w = np.zeros(self.P)
         if not s.temporal or self.T < 3:
@@ -83,7 +84,6 @@ class Solver:
         w[lay.rotation] = 1 / math.radians(s.rotation_acceleration_deg) ** 2
         w[lay.translation] = 1 / s.translation_acceleration_cm**2
         w[lay.theta] = 1 / math.radians(s.theta_acceleration_deg) ** 2
-        w[lay.psi] = 1 / s.psi_acceleration**2
         w[lay.tau] = 1 / s.tau_acceleration**2
         return w
 
@@ -104,6 +104,7 @@ class Solver:
             index = slice(start, min(start + self.settings.chunk, T))
             frames = list(range(index.start, index.stop))
             probe = self.lin.pose(*state.frames(index), offset=state.offset)
+            self.data.robust_cm = robust_cm
             vertices, weights, targets, normals = self.data.rows(frames, probe)
             q, jac, deta, _ = self.lin.linearise(*state.frames(index), offset=state.offset, vertices=vertices)
             diff = q - targets                                               # [b,n,3]
@@ -113,7 +114,10 @@ class Solver:
                 along = (diff * normals).sum(-1)
                 share = self.settings.scan_plane_share
                 squared = along**2 + share * (diff * diff).sum(-1)
-            w = weights * geman_mcclure(squared, robust_cm) * inv_noise**2   # [b,n]
+            if getattr(self.data, "robust_inside", False):   # the data term weighs its points itself
+                w = weights * inv_noise**2
+            else:
+                w = weights * geman_mcclure(squared, robust_cm) * inv_noise**2   # [b,n]
             total = weights.sum(1).clamp_min(1e-9)
             rms[index] = (((weights * squared).sum(1) / total).sqrt()).double().numpy()
             root = w.sqrt()[..., None]
@@ -188,24 +192,39 @@ class Solver:
         return float((second**2 * weights).sum())
 
     def solve(self, H, g, weights, mask, eta_terms, damping: float):
-        """Solve (H + temporal + damping) dx = -g per the mask [P] of free unknowns; returns dx [T,P], d_eta."""
-        T, P = self.T, self.P
-        n = T * P
+        """Solve (H + temporal + damping) dx = -g for the free unknowns (``mask`` [P]); returns dx [T,P] and
+        d_eta.  psi, which the temporal term does not couple, is eliminated per frame first (Schur
+        complement), so the banded system holds only the placement, theta and tau (lower bandwidth 2 x 28)."""
+        T, P, lay = self.T, self.P, self.layout
         H = H.copy()
         g = g.copy()
+        h_eta, eta_hh, eta_g = eta_terms
+        h_eta = h_eta.copy()
         free = mask.astype(bool)
         H[:, ~free, :] = 0
         H[:, :, ~free] = 0
         g[:, ~free] = 0
+        h_eta[:, ~free] = 0
         diag = np.einsum("tii->ti", H)
         diag += damping * diag + 1e-9
         diag[:, ~free] = 1.0
-        w = weights * free
-        bands = 2 * P if T >= 3 and w.any() else P - 1
+        local = np.arange(P)[lay.psi]
+        coupled = np.setdiff1d(np.arange(P), local)
+        hll = H[:, local][:, :, local]
+        hcl = H[:, coupled][:, :, local]
+        hll_inv = np.linalg.inv(hll)
+        k = hcl @ hll_inv                                                      # [T,C,E]
+        hcc = H[:, coupled][:, :, coupled] - k @ hcl.transpose(0, 2, 1)
+        gc = g[:, coupled] - (k @ g[:, local, None])[..., 0]
+        hc = h_eta[:, coupled] - (k @ h_eta[:, local, None])[..., 0]
+        w = (weights * free)[coupled]
+        C = len(coupled)
+        n = T * C
+        bands = 2 * C if T >= 3 and w.any() else C - 1
         ab = np.zeros((bands + 1, n))
-        for d in range(P):
-            ab[d].reshape(T, P)[:, : P - d] = np.diagonal(H, offset=-d, axis1=1, axis2=2)
-        if bands >= 2 * P:
+        for d in range(C):
+            ab[d].reshape(T, C)[:, : C - d] = np.diagonal(hcc, offset=-d, axis1=1, axis2=2)
+        if bands >= 2 * C:
             # D^T D of the second differences: diagonal (1, 5, 6, ..., 6, 5, 1), first (-2, -4, ..., -4, -2),
             # second (1, ..., 1).
             main = np.full(T, 6.0)
@@ -214,24 +233,27 @@ class Solver:
             first = np.full(T - 1, -4.0)
             first[[0, -1]] = -2
             ab[0] += (main[:, None] * w).reshape(-1)
-            ab[P, : n - P] += (first[:, None] * w).reshape(-1)
-            ab[2 * P, : n - 2 * P] += np.tile(w, T - 2)
-        h_eta, eta_hh, _ = eta_terms
-        rhs = [-g.reshape(-1)]
+            ab[C, : n - C] += (first[:, None] * w).reshape(-1)
+            ab[2 * C, : n - 2 * C] += np.tile(w, T - 2)
+        rhs = [-gc.reshape(-1)]
         if eta_hh > 0:
-            he = h_eta.copy()
-            he[:, ~free] = 0
-            rhs.append(he.reshape(-1))
+            rhs.append(hc.reshape(-1))
         solution = scipy.linalg.solveh_banded(ab, np.stack(rhs, 1), lower=True)
-        dx = solution[:, 0]
+        dc = solution[:, 0]
         d_eta = 0.0
         if eta_hh > 0:
-            _, hh, ge = eta_terms
             z = solution[:, 1]
-            schur = hh * (1 + damping) - he.reshape(-1) @ z
-            d_eta = (-ge - he.reshape(-1) @ dx) / max(schur, 1e-12)
-            dx = dx - z * d_eta
-        return dx.reshape(T, P), d_eta
+            hl = h_eta[:, local]
+            hll_reduced = eta_hh * (1 + damping) - np.einsum("te,tef,tf->", hl, hll_inv, hl)
+            g_reduced = eta_g - np.einsum("te,tef,tf->", hl, hll_inv, g[:, local])
+            d_eta = (-g_reduced - hc.reshape(-1) @ dc) / max(hll_reduced - hc.reshape(-1) @ z, 1e-12)
+            dc = dc - z * d_eta
+        dc = dc.reshape(T, C)
+        dx = np.zeros((T, P))
+        dx[:, coupled] = dc
+        rhs_l = -g[:, local] - (hcl.transpose(0, 2, 1) @ dc[..., None])[..., 0] - h_eta[:, local] * d_eta
+        dx[:, local] = (hll_inv @ rhs_l[..., None])[..., 0]
+        return dx, d_eta
 
     # ------------------------------------------------------------------ the stages
 
