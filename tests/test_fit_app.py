@@ -3,6 +3,7 @@ the training loaders (head2neck data=theta_seq, larynx_transformer data=pairs) o
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import numpy as np
 import pytest
@@ -15,6 +16,9 @@ from data.expressions import EXPRESSION_NAMES
 from data.params import AnimationParams, load_params, rig_checksum, save_params
 from models.rig import HeadNeckModel
 from tests.conftest import REPO
+
+sys.path.insert(0, str(REPO / "benchmarks"))
+from fit_app_check import capture_sequence  # noqa: E402  (the synthetic capture, shared with the benchmark)
 
 
 def fitted_params(rig: HeadNeckModel, frames: int = 20, seed: int = 0, fps: float = 30.0,
@@ -101,9 +105,9 @@ def test_the_persons_rig_is_the_template_plus_the_offset(builtin_rig):
 
 
 def test_head2neck_theta_seq_reads_fit_folders_and_checks_the_rig(tmp_path, builtin_rig, turned_rig_file):
+    from base.cli import compose_config
     from data.cervical_prior import load_theta_sequences
     from tasks.head2neck import Task
-    from tests.test_head2neck import theta_seq_config
 
     clips = [fitted_params(builtin_rig, frames=20 + 5 * k, seed=k) for k in range(3)]
     for k, params in enumerate(clips):
@@ -113,7 +117,8 @@ def test_head2neck_theta_seq_reads_fit_folders_and_checks_the_rig(tmp_path, buil
     assert np.array_equal(loaded[2].theta, clips[2].theta)
     single = load_theta_sequences(tmp_path / "fits" / "take1" / "params.npz", rig=builtin_rig.rig)
     assert np.array_equal(single[0].theta, clips[1].theta)
-    task = Task(theta_seq_config(tmp_path / "fits", "builtin", "data.val_fraction=0.34"))
+    task = Task(compose_config("train", ["task=head2neck", "data=theta_seq", f"data.path={tmp_path / 'fits'}",
+                                         "data.val_fraction=0.34", "model.hidden=[32,32]"]))
     assert len(task.train["head"]) + len(task.val["head"]) == 75 and len(task.val["head"]) in (20, 25, 30)
     with pytest.raises(InputError, match=r"take0/params\.npz: made with rig 'builtin' .* give rig= the rig"):
         load_theta_sequences(tmp_path / "fits", rig=RigData.load(turned_rig_file))   # what Task passes: its rig=
@@ -158,36 +163,9 @@ def test_the_loaders_name_a_bad_fit(tmp_path, builtin_rig):
     (tmp_path / "none").mkdir()
     with pytest.raises(InputError, match=r"none: no \.npz pair files and no fit folders"):
         load_pairs(tmp_path / "none")
-    assert REPO.is_dir()
 
 
 # ----------------------------------------------------------------------------- python -m motion.fit
-
-
-def capture_sequence(rig: HeadNeckModel, frames: int, noise_mm: float = 1.0, seed: int = 0) -> dict:
-    """A capture of the rig (our own motion, not the benchmark's prior): every neck joint nodding, turning and
-    tilting by sines, two expressions, a larynx slide, a slowly swaying placement; vertices in mm with Gaussian
-    noise of ``noise_mm`` per axis."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(frames) / 30.0
-    anatomical = np.zeros((frames, rig.num_joints, 3))
-    anatomical[:, 1:, 0] = (0.05 + 0.15 * np.sin(2 * np.pi * 1.5 * t))[:, None] * np.linspace(0.5, 1.0, 7)
-    anatomical[:, 1:, 1] = (0.1 * np.cos(2 * np.pi * 1.1 * t + 0.4))[:, None]
-    anatomical[:, 1:, 2] = (0.04 * np.sin(2 * np.pi * 0.9 * t))[:, None]
-    theta = rig.from_anatomical(torch.tensor(anatomical, dtype=torch.float32))
-    psi = np.zeros((frames, rig.num_expressions), np.float32)
-    psi[:, 2], psi[:, 9] = 0.5 + 0.3 * np.sin(4 * t), 0.3
-    tau = (0.03 * np.sin(2 * np.pi * 1.2 * t)).astype(np.float32)
-    eta = np.full(frames, 1.0, np.float32)
-    sway = np.stack([0.3 + 0.05 * np.sin(t), -0.8 + 0.1 * t, 0.2 * np.cos(t)], axis=1)
-    rotation = axis_angle_to_matrix(torch.tensor(sway)).numpy()
-    translation = np.stack([12 + t, -40 + 0 * t, 150 + 2 * np.sin(t)], axis=1)        # cm
-    with torch.no_grad():
-        posed = rig(theta, torch.tensor(psi), torch.tensor(tau), torch.tensor(eta)).double().numpy()
-        head = rig.head_rotation(theta).double().numpy()
-    world = np.einsum("tab,tvb->tva", rotation, posed) + translation[:, None]
-    return {"vertices_mm": 10 * world + rng.normal(0, noise_mm, world.shape), "theta": theta.numpy(), "tau": tau,
-            "head_world": rotation @ head, "psi": psi}
 
 
 def write_frames(folder, vertices_mm: np.ndarray, faces: np.ndarray) -> None:
