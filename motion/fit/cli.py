@@ -34,6 +34,7 @@ source=OUT/params.npz`` and every exporter.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import re
 import time
 from dataclasses import dataclass, field
@@ -100,6 +101,8 @@ def solver_settings(settings: FitCli) -> FitSettings:
     solver = settings.solver
     values = {f.name: getattr(solver, f.name) for f in dataclasses.fields(solver)}
     values["fit_shape"] = bool(settings.fit_shape or solver.fit_shape)
+    if values["fit_shape"] and importlib.util.find_spec("models.fit.shape") is None:
+        raise InputError("fit_shape=true: this version of models.fit has no shape term yet")
     if isinstance(values.get("iterations"), list):
         values["iterations"] = tuple(values["iterations"])
     return FitSettings(**values)
@@ -132,6 +135,7 @@ def run(cfg) -> dict:
         blender_executable()   # before any work: one line saying how to install it, exit status 2
     out_dir = Path(settings.out_dir)
     require_new_folder(out_dir)
+    solver, fit = solver_settings(settings), fitter(settings.kind)
     started = time.perf_counter()
     rig = build_procedural_rig() if settings.rig in ("", "builtin") else RigData.load(settings.rig)
     with progress_bar(desc="reading", unit="frame", disable=not settings.progress) as bar:
@@ -142,8 +146,6 @@ def run(cfg) -> dict:
     model = HeadNeckModel(rig)   # after reading: bad input is refused before the rig's set-up
     seconds["rig"] = time.perf_counter() - started
 
-    solver = solver_settings(settings)
-    fit = fitter(settings.kind)
     started = time.perf_counter()
     with progress_bar(total=len(capture), desc="fitting", unit="frame", disable=not settings.progress) as bar:
         try:
