@@ -238,17 +238,22 @@ def test_motion_fit_refuses_bad_input_naming_the_file_and_writes_nothing(tmp_pat
     cases["empty"] = (["units=mm"], r"frame_0\.ply: does not start with 'ply'")
     (tmp_path / "none").mkdir()
     cases["none"] = ([], r"none: no \.obj or \.ply files")
+    write_frames(tmp_path / "sparse", np.stack([rest, rest]), faces)
+    write_ply(tmp_path / "sparse" / "frame_1.ply", rest[::120], np.zeros((0, 3), int))    # 49 points: too few
+    cases["sparse"] = (["units=mm", "kind=scans"], r"frame 1 has 49 points, expected at least 100 \(frame 1 is "
+                       r"\S*sparse/frame_1\.ply\)")
     np.savez(tmp_path / "take.npz", points=np.zeros((2, 3, 3)))
     cases["take.npz"] = ([], r"take\.npz: no 'vertices' array \(found: points\)")
     for name, (extra, message) in cases.items():
-        if name not in ("mixed", "nan"):   # the reader's errors; two of them through the command line below
+        if name not in ("mixed", "nan", "sparse"):   # the reader's errors; the others through the command line
             units = extra[0].split("=")[1] if extra else "cm"
             with pytest.raises(InputError, match=message):
                 read_capture(str(tmp_path / name), "meshes", units, builtin_rig.rig.template)
             continue
         out = tmp_path / f"out_{name}"
         with pytest.raises(SystemExit) as exit_:
-            run_fit([f"input={tmp_path / name}", "kind=meshes", f"out_dir={out}", *extra, *FAST])
+            run_fit([f"input={tmp_path / name}", f"out_dir={out}", *extra, *FAST]
+                    + ([] if any(e.startswith("kind=") for e in extra) else ["kind=meshes"]))
         err = capsys.readouterr().err
         assert exit_.value.code == 2 and len(err.strip().splitlines()) == 1, (name, err)
         assert __import__("re").search(message, err), (name, err)
