@@ -1,6 +1,7 @@
 """A synthetic capture for ``python -m motion.fit``, and the fit's score against its truth.
 
     python benchmarks/fit_app_check.py write --out capture/ [--kind meshes|scans] [--frames 10] [--rig hack_rig.npz]
+        [--person]   # another person: data.fit_captures.reshaped_person (fit it with fit_shape=true)
     python -m motion.fit input=capture/ kind=scans units=mm [rig=hack_rig.npz] out_dir=fit/
     python benchmarks/fit_app_check.py score --out capture/ --fit fit/
 
@@ -10,7 +11,8 @@ sway, scans sampled on triangles from a fixed view): every neck joint nods, turn
 with 1 mm of Gaussian noise per axis.  Scans (``--kind scans``) are the posed vertices on the face's side
 of the head (half of them), with 1 mm noise and 3 % stray points in a 30 cm box about the head.  The truth
 goes beside the capture (``<out>_truth.npz``).  ``score`` prints the joints' angle error (c6c7..oc1, mean
-over frames), the world head orientation's error, tau's RMSE and what the fit reports.
+over frames), the world head orientation's error, tau's RMSE, the vertex RMS of the fitted mesh (placed in
+the capture, the fitted shape included) against the clean capture, and what the fit reports.
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ from base.rotations import axis_angle_to_matrix  # noqa: E402
 from data.mesh_io import write_ply  # noqa: E402
 from data.params import load_params  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
+from scene.characters import person_rig, resolve_rig  # noqa: E402
 
 
 def capture_sequence(rig: HeadNeckModel, frames: int, noise_mm: float = 1.0, seed: int = 0) -> dict:
@@ -52,7 +55,7 @@ def capture_sequence(rig: HeadNeckModel, frames: int, noise_mm: float = 1.0, see
         head = rig.head_rotation(theta).double().numpy()
     world = np.einsum("tab,tvb->tva", rotation, posed) + translation[:, None]
     return {"vertices_mm": 10 * world + rng.normal(0, noise_mm, world.shape), "theta": theta.numpy(), "tau": tau,
-            "head_world": rotation @ head, "psi": psi}
+            "head_world": rotation @ head, "psi": psi, "clean_mm": 10 * world}
 
 
 def scans(capture: dict, seed: int = 1, stray_share: float = 0.03) -> list[np.ndarray]:
@@ -69,13 +72,18 @@ def scans(capture: dict, seed: int = 1, stray_share: float = 0.03) -> list[np.nd
 
 def write(args) -> None:
     rig = HeadNeckModel.from_config(args.rig)
+    if args.person:
+        from data.fit_captures import reshaped_person
+
+        rig = HeadNeckModel(reshaped_person(rig.rig, args.seed))
     capture = capture_sequence(rig, args.frames, seed=args.seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     frames = capture["vertices_mm"] if args.kind == "meshes" else scans(capture, args.seed + 1)
     for k, frame in enumerate(frames):
         write_ply(out / f"frame_{k}.ply", frame, rig.rig.faces if args.kind == "meshes" else np.zeros((0, 3), int))
-    np.savez(f"{out}_truth.npz", theta=capture["theta"], tau=capture["tau"], head_world=capture["head_world"])
+    np.savez(f"{out}_truth.npz", theta=capture["theta"], tau=capture["tau"], head_world=capture["head_world"],
+             clean_mm=capture["clean_mm"])
     print(f"wrote {len(frames)} {args.kind} to {out} (mm), the truth to {out}_truth.npz")
 
 
@@ -88,9 +96,18 @@ def score(args) -> None:
     head = params.root_rotation.astype(np.float64) @ params.head_rotation
     cos = (np.trace(np.swapaxes(head, 1, 2) @ truth["head_world"], axis1=1, axis2=2) - 1) / 2
     report = json.loads((Path(args.fit) / "report.json").read_text())
+    model = person_rig(resolve_rig(params, Path(args.fit) / "params.npz", args.rig), params)
+    with torch.no_grad():
+        posed = model(torch.as_tensor(params.theta), torch.as_tensor(params.psi), torch.as_tensor(params.tau),
+                      torch.as_tensor(params.eta)).double().numpy()
+    placed = np.einsum("tab,tvb->tva", params.root_rotation.astype(np.float64), posed)
+    placed = placed + params.root_translation[:, None]
+    vertex_rms = np.sqrt(np.mean(np.sum((10 * placed - truth["clean_mm"]) ** 2, axis=-1)))
     print(f"joints c6c7..oc1 (deg, mean over frames): {np.round(joints.mean(0), 2).tolist()}, mean {joints.mean():.3f}")
     print(f"head (deg): mean {np.degrees(np.arccos(np.clip(cos, -1, 1))).mean():.3f}, "
           f"max {np.degrees(np.arccos(np.clip(cos, -1, 1))).max():.3f}")
+    print(f"vertices to the clean capture: RMS {vertex_rms:.3f} mm (shape offset "
+          f"{'fitted' if params.shape_offset is not None else 'none'})")
     print(f"tau RMSE {np.sqrt(np.mean((params.tau - truth['tau']) ** 2)):.5f}; residual {report['fit_rms_mm']}; "
           f"{report['frames_per_s']} frames/s; uncertainty {report['joint_uncertainty_deg']}")
 
@@ -104,6 +121,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=10)
     parser.add_argument("--rig", default=None)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--person", action="store_true", help="write: another person's shape")
     args = parser.parse_args()
     write(args) if args.mode == "write" else score(args)
 
