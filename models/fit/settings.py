@@ -43,6 +43,7 @@ class FitSettings:
     hessian_vertices: int = 2000         # Gauss-Newton Hessian from about this many vertices (the gradient: all)
     chunk: int = 16                      # frames linearised at once (memory ~ chunk * 14 MB on the real rig)
     shape_laplacian_cm: float = 0.003    # shape offset: std of its graph Laplacian (I - D^-1 A) per vertex
+    shape_iterations: int = 300          # shape offset: conjugate-gradient iterations per step
     shape_scale_cm: float = 2.0          # shape offset: std of its pull to zero
     seed: int = 0                        # random choices (scan subsampling)
     # scans only
