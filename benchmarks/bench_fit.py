@@ -156,7 +156,7 @@ def timed(fn):
     return result, time.perf_counter() - start, time.process_time() - start_cpu
 
 
-BASELINE = dict(temporal=False, limit_deg=0.0)
+BASELINE = dict(temporal=False, limit_deg=0.0, neck_prior="none")
 
 
 def run_meshes(model: HeadNeckModel, truth: Truth) -> dict:
@@ -164,6 +164,8 @@ def run_meshes(model: HeadNeckModel, truth: Truth) -> dict:
     noisy = truth.noisy.numpy()
     result, wall, cpu = timed(lambda: fit_meshes(model, noisy))
     out["fit"] = scores(model, truth, result, wall, cpu)
+    result, wall, cpu = timed(lambda: fit_meshes(model, noisy, FitSettings(neck_prior="subaxial")))
+    out["fit_subaxial"] = scores(model, truth, result, wall, cpu)
     result, wall, cpu = timed(lambda: fit_meshes(model, noisy, FitSettings(**BASELINE)))
     out["per_frame"] = scores(model, truth, result, wall, cpu)
     # Bound: the fit started at the truth (no local minimum, the same energy).
@@ -198,6 +200,8 @@ def run_scans(model: HeadNeckModel, truth: Truth, seed: int) -> dict:
     clouds = [c / 10 for c in clouds_mm]   # motion.fit converts units=mm to cm before the solver
     result, wall, cpu = timed(lambda: fit_scans(model, clouds))
     out["fit"] = scores(model, truth, result, wall, cpu)
+    result, wall, cpu = timed(lambda: fit_scans(model, clouds, FitSettings(neck_prior="none")))
+    out["fit_no_neck_prior"] = scores(model, truth, result, wall, cpu)
     result, wall, cpu = timed(lambda: fit_scans(model, clouds, FitSettings(**BASELINE)))
     out["per_frame"] = scores(model, truth, result, wall, cpu)
     tris = triangles(model.rig.faces)

@@ -163,6 +163,57 @@ class RigLinearisation:
             blended = torch.einsum("nj,bjrc->bnrc", weights, transforms)
             return (blended[..., :3] @ x[..., None])[..., 0] + blended[..., 3]
 
+    def gradient(self, rigid, psi, tau, eta, reference, rho, offset=None, vertices=None):
+        """J^T rho [B,P], dq/deta . rho [B] for per-vertex vectors rho [B,n,3], and the blended 3x3s
+        [B,n,3,3], without the Jacobian:
+        the rigid part through the [n,4J] features (``linearise``), psi through the expressions seen by the
+        blended 3x3s, tau and eta at the larynx vertices."""
+        batch = rigid.shape[0]
+        layout = self.layout
+        jac_c = self.transform_derivatives(rigid, reference)                 # [B,J,3,4,R]
+        with torch.no_grad():
+            x = self.rest(rigid[:, 6:].reshape(batch, -1, 3), psi, tau, eta, offset, vertices)
+            weights = self.weights if vertices is None else self.weights[vertices]
+            n, joints = weights.shape
+            features = (weights[None, :, :, None] * torch.cat([x, x.new_ones(batch, n, 1)], -1)[:, :, None])
+            features = features.reshape(batch, n, 4 * joints)
+            projected = features.transpose(1, 2) @ rho                       # [B,4J,3]: (joint, column), row
+            columns = jac_c.permute(0, 1, 3, 2, 4).reshape(batch, 4 * joints, 3, -1)
+            out = rho.new_zeros(batch, layout.size)
+            out[:, layout.rigid] = torch.einsum("bkr,bkrp->bp", projected, columns)
+            linear = torch.einsum("nj,bjrc->bnrc", weights, self.transforms(rigid, reference)[..., :3])
+            back = (linear.transpose(-1, -2) @ rho[..., None])[..., 0]       # [B,n,3] in rest space
+            expressions = self.expressions_by_vertex if vertices is None else self.expressions_by_vertex[vertices]
+            out[:, layout.psi] = torch.einsum("bnc,nce->be", back, expressions)
+            scalar, slope = self._larynx(tau)
+            at_larynx = self._gather_larynx(back, vertices) @ self.model.larynx_direction   # [B,M]
+            out[:, layout.tau] = (eta[:, None] * slope * at_larynx).sum(1)
+            return out, (scalar * at_larynx).sum(1), linear
+
+    def expression_gram(self, information: torch.Tensor, vertices=None) -> torch.Tensor:
+        """sum_n E_n^T A_n E_n [E,E] for rest-space information matrices A [n,3,3] (psi's Hessian block)."""
+        expressions = self.expressions_by_vertex if vertices is None else self.expressions_by_vertex[vertices]
+        weighted = information @ expressions                                # [n,3,E]
+        return weighted.reshape(-1, weighted.shape[-1]).T @ expressions.reshape(-1, weighted.shape[-1])
+
+    def _gather_larynx(self, values: torch.Tensor, vertices: torch.Tensor | None) -> torch.Tensor:
+        """values [B,n,3] at ``vertices`` -> [B,M,3] at the larynx vertices (zero where not among them)."""
+        if vertices is None:
+            return values[:, self.model.larynx_vertices]
+        position = torch.full((self.model.num_vertices,), -1, dtype=torch.long)
+        position[vertices] = torch.arange(len(vertices))
+        where = position[self.model.larynx_vertices]
+        out = values.new_zeros(values.shape[0], len(where), 3)
+        keep = where >= 0
+        out[:, keep] = values[:, where[keep]]
+        return out
+
+    def blended_linear(self, rigid, reference, vertices=None) -> torch.Tensor:
+        """Per vertex the blended 3x3 of the transforms (placement included) [B,n,3,3]."""
+        with torch.no_grad():
+            weights = self.weights if vertices is None else self.weights[vertices]
+            return torch.einsum("nj,bjrc->bnrc", weights, self.transforms(rigid, reference)[..., :3])
+
     def linearise(self, rigid, psi, tau, eta, reference, offset=None, vertices=None):
         """Posed vertices q [B,n,3] and the Jacobian [B,n,3,P] in the frame's unknowns (``FrameLayout``),
         plus dq/deta [B,n,3] and the blended 3x3 [B,n,3,3] (for the shape offset)."""

@@ -9,6 +9,8 @@ covariance and ``joint_uncertainty_deg`` is in degrees):
   (per frame^2; psi is per frame);
 - E_rot (Zhang et al., HACK, SIGGRAPH 2023): each joint's Euler angles outside ``data.joint_limits`` over
   ``limit_deg``;
+- neck prior (``neck_prior``): "subaxial" is the paper's E_sim (adjacent joints rotate alike) on the pairs
+  below C2 only (E_sim on every pair pulls C1-C2, which carries the head's turn, towards its neighbours);
 - psi: a weak pull to zero (``psi_scale``); psi is kept in [0, 1].
 """
 from __future__ import annotations
@@ -33,11 +35,16 @@ class FitSettings:
     translation_acceleration_cm: float = 0.05  # ... of the placement's translation
     tau_acceleration: float = 0.002      # ... of tau
     limit_deg: float = 1.0               # E_rot: std of an angle beyond its joint limit (0 disables E_rot)
+    neck_prior: str = "auto"             # none | subaxial: E_sim on the pairs C6-C7 ... C2-C3 | auto: subaxial
+                                         # for scans, none for meshes (measured, benchmarks/README.md)
+    neck_prior_deg: float = 0.5          # std of an adjacent pair's difference (anatomical frames)
     psi_scale: float = 3.0               # std of the weak pull of psi to zero
     iterations: tuple[int, int, int] = (2, 3, 4)  # Gauss-Newton iterations: placement, + neck, + all
     damping: float = 1e-4                # initial Levenberg-Marquardt damping (relative to the diagonal)
+    hessian_vertices: int = 2000         # Gauss-Newton Hessian from about this many vertices (the gradient: all)
     chunk: int = 16                      # frames linearised at once (memory ~ chunk * 14 MB on the real rig)
-    shape_smoothness: float = 30.0       # shape offset: weight of its graph Laplacian against the data
+    shape_laplacian_cm: float = 0.003    # shape offset: std of its graph Laplacian (I - D^-1 A) per vertex
+    shape_iterations: int = 300          # shape offset: conjugate-gradient iterations per step
     shape_scale_cm: float = 2.0          # shape offset: std of its pull to zero
     seed: int = 0                        # random choices (scan subsampling)
     # scans only
