@@ -106,6 +106,7 @@ class Solver:
         rms = np.zeros(T)
         h_eta = np.zeros((T, P))
         eta_hh, eta_g = 0.0, 0.0
+        self.psi_subsampled = np.zeros((T, self.layout.num_expressions, self.layout.num_expressions))
         inv_noise2 = 1.0 / self.settings.noise_cm**2
         share = self.settings.scan_plane_share
         for start in range(0, T, self.settings.chunk):
@@ -157,6 +158,7 @@ class Solver:
                 rows_e = torch.cat([(root[..., 0] * ne)[..., None], math.sqrt(share) * root * deta], -1).reshape(
                     len(frames), -1)
             H[index] = (rows_j.transpose(1, 2) @ rows_j).double().numpy()
+            self.psi_subsampled[index] = H[index][:, self.layout.psi, self.layout.psi]
             # psi's block from every vertex (expressions are local: a subsample misses the small ones), with
             # the chunk's mean information in rest space, L^T A L.
             if normals is None:
@@ -292,14 +294,13 @@ class Solver:
         rhs = [-gc.reshape(-1)]
         if eta_hh > 0:
             rhs.append(hc.reshape(-1))
-        # The subsampled Hessian is not always positive definite after eliminating psi: raise the damping on
-        # the banded part until it is.
-        for attempt in range(8):
+        # Nearly singular after eliminating psi: a little more damping on the banded part.
+        for attempt in range(3):
             try:
                 solution = scipy.linalg.solveh_banded(ab, np.stack(rhs, 1), lower=True)
                 break
             except np.linalg.LinAlgError:
-                if attempt == 7:
+                if attempt == 2:
                     raise
                 ab[0] += np.abs(ab[0]) * 10.0 ** (attempt - 3) + 1e-6
         dc = solution[:, 0]
@@ -385,7 +386,22 @@ class Solver:
             psi = state.psi.double().numpy()
             bound = np.zeros(g.shape, bool)
             bound[:, lay.psi] = ((psi <= 0) & (g[:, lay.psi] > 0)) | ((psi >= 1) & (g[:, lay.psi] < 0))
-            dx, d_eta = self.solve(H, g, weights, mask, eta_terms, self.damping, bound)
+            try:
+                if not (np.isfinite(H).all() and np.isfinite(g).all()):
+                    raise np.linalg.LinAlgError("non-finite normal equations")
+                try:
+                    dx, d_eta = self.solve(H, g, weights, mask, eta_terms, self.damping, bound)
+                except np.linalg.LinAlgError:
+                    # psi's block from every vertex against the subsampled cross terms can leave the reduced
+                    # system indefinite; with the subsample's own block added it is positive definite.
+                    H[:, lay.psi, lay.psi] += self.psi_subsampled
+                    dx, d_eta = self.solve(H, g, weights, mask, eta_terms, self.damping, bound)
+            except np.linalg.LinAlgError as error:   # no step from here: back to the last state, more damping
+                self.report.setdefault("failed_solves", []).append(f"{name}: {error}")
+                if previous is not None:
+                    state = previous[1]
+                self.damping *= 10
+                continue
             previous = (total, state, robust_cm)
             state = self.apply(state, dx, d_eta if with_eta else 0.0)
             if after_step is not None:
