@@ -164,8 +164,8 @@ def run_meshes(model: HeadNeckModel, truth: Truth) -> dict:
     noisy = truth.noisy.numpy()
     result, wall, cpu = timed(lambda: fit_meshes(model, noisy))
     out["fit"] = scores(model, truth, result, wall, cpu)
-    result, wall, cpu = timed(lambda: fit_meshes(model, noisy, FitSettings(neck_prior="subaxial")))
-    out["fit_subaxial"] = scores(model, truth, result, wall, cpu)
+    result, wall, cpu = timed(lambda: fit_meshes(model, noisy, FitSettings(neck_prior="none")))
+    out["fit_no_neck_prior"] = scores(model, truth, result, wall, cpu)
     result, wall, cpu = timed(lambda: fit_meshes(model, noisy, FitSettings(**BASELINE)))
     out["per_frame"] = scores(model, truth, result, wall, cpu)
     # Bound: the fit started at the truth (no local minimum, the same energy).

@@ -65,10 +65,11 @@ def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings
     everything[:] = True
     iterations = settings.iterations
     solver._passes_total = sum(iterations) + 1
-    # Geman-McClure's scale falls geometrically from robust_start_cm to robust_scale_cm over the stages.
-    total = max(1, sum(iterations) - 1)
-    ratio = settings.robust_scale_cm / settings.robust_start_cm
-    scales = [settings.robust_start_cm * ratio ** min(1.0, k / max(1, total - 1)) for k in range(sum(iterations))]
+    # Geman-McClure's scale falls geometrically from robust_start_cm to robust_scale_cm, one value per stage
+    # (constant within a stage, so that Levenberg-Marquardt can compare the energies of its steps).
+    levels = [settings.robust_start_cm * (settings.robust_scale_cm / settings.robust_start_cm) ** (k / 2)
+              for k in range(3)]
+    scales = [level for level, count in zip(levels, iterations) for _ in range(count)]
     offsets = np.cumsum([0, *iterations])
     stages = (("placement", placement, False), ("neck", neck, False), ("all", everything, True))
     for (name, mask, with_eta), first, count in zip(stages, offsets, iterations):

@@ -90,6 +90,8 @@ class ShapeOffset:
         offset, _ = scipy.sparse.linalg.cg(system, b.reshape(-1), x0=old.reshape(-1), M=preconditioner,
                                            maxiter=self.settings.shape_iterations, rtol=1e-6)
         offset = offset.reshape(V, 3)
+        if not np.isfinite(offset).all():
+            return state
         new = state.copy()
         new.offset = torch.tensor(offset, dtype=torch.float32)
         return new

@@ -106,6 +106,7 @@ class Solver:
         rms = np.zeros(T)
         h_eta = np.zeros((T, P))
         eta_hh, eta_g = 0.0, 0.0
+        self.psi_subsampled = np.zeros((T, self.layout.num_expressions, self.layout.num_expressions))
         inv_noise2 = 1.0 / self.settings.noise_cm**2
         share = self.settings.scan_plane_share
         for start in range(0, T, self.settings.chunk):
@@ -157,6 +158,7 @@ class Solver:
                 rows_e = torch.cat([(root[..., 0] * ne)[..., None], math.sqrt(share) * root * deta], -1).reshape(
                     len(frames), -1)
             H[index] = (rows_j.transpose(1, 2) @ rows_j).double().numpy()
+            self.psi_subsampled[index] = H[index][:, self.layout.psi, self.layout.psi]
             # psi's block from every vertex (expressions are local: a subsample misses the small ones), with
             # the chunk's mean information in rest space, L^T A L.
             if normals is None:
@@ -239,7 +241,7 @@ class Solver:
         second = values[:-2] - 2 * values[1:-1] + values[2:]
         return float((second**2 * weights).sum())
 
-    def solve(self, H, g, weights, mask, eta_terms, damping: float):
+    def solve(self, H, g, weights, mask, eta_terms, damping: float, bound: np.ndarray | None = None):
         """Solve (H + temporal + damping) dx = -g for the free unknowns (``mask`` [P]); returns dx [T,P] and
         d_eta.  psi, which the temporal term does not couple, is eliminated per frame first (Schur
         complement), so the banded system holds only the placement, theta and tau (lower bandwidth 2 x 28)."""
@@ -253,9 +255,15 @@ class Solver:
         H[:, :, ~free] = 0
         g[:, ~free] = 0
         h_eta[:, ~free] = 0
+        if bound is not None:   # [T,P] unknowns held at a bound this step (psi at 0 or 1, pushed outwards)
+            H[bound[:, :, None] | bound[:, None, :]] = 0
+            g[bound] = 0
+            h_eta[bound] = 0
         diag = np.einsum("tii->ti", H)
         diag += damping * diag + 1e-9
         diag[:, ~free] = 1.0
+        if bound is not None:
+            diag[bound] = 1.0
         local = np.arange(P)[lay.psi]
         coupled = np.setdiff1d(np.arange(P), local)
         hll = H[:, local][:, :, local]
@@ -286,14 +294,13 @@ class Solver:
         rhs = [-gc.reshape(-1)]
         if eta_hh > 0:
             rhs.append(hc.reshape(-1))
-        # The subsampled Hessian is not always positive definite after eliminating psi: raise the damping on
-        # the banded part until it is.
-        for attempt in range(8):
+        # Nearly singular after eliminating psi: a little more damping on the banded part.
+        for attempt in range(3):
             try:
                 solution = scipy.linalg.solveh_banded(ab, np.stack(rhs, 1), lower=True)
                 break
             except np.linalg.LinAlgError:
-                if attempt == 7:
+                if attempt == 2:
                     raise
                 ab[0] += np.abs(ab[0]) * 10.0 ** (attempt - 3) + 1e-6
         dc = solution[:, 0]
@@ -332,10 +339,12 @@ class Solver:
         new = state.copy()
         lay = self.layout
         step = torch.tensor(dx, dtype=torch.float32)
-        new.rigid = state.rigid + step[:, lay.rigid]
+        # Steps are capped (0.2 rad, 2 cm, 0.05 in tau, eta kept in [0, 3]): a far step is a poor linearisation.
+        cap = torch.tensor([0.2] * 3 + [2.0] * 3 + [0.2] * (lay.theta.stop - lay.theta.start))
+        new.rigid = state.rigid + torch.maximum(torch.minimum(step[:, lay.rigid], cap), -cap)
         new.psi = (state.psi + step[:, lay.psi]).clamp(0, 1)
-        new.tau = state.tau + step[:, lay.tau]
-        new.eta = state.eta + d_eta
+        new.tau = state.tau + step[:, lay.tau].clamp(-0.05, 0.05)
+        new.eta = (state.eta + float(np.clip(d_eta, -0.5, 0.5))).clamp(0, 3)
         return new
 
     def run_stage(self, state: State, mask: np.ndarray, iterations: int, robust: list[float], with_eta: bool,
@@ -357,7 +366,9 @@ class Solver:
             x = self.flat(state)
             total = (data_energy.sum() + eL.sum() + self.temporal_energy(x, weights)
                      + self.psi_terms(state)[2].sum())
-            if previous is not None and total > previous[0] * (1 + 1e-6) and previous[2] == robust_cm:
+            worse = not np.isfinite(total) or (previous is not None and total > previous[0] * (1 + 1e-6)
+                                               and previous[2] == robust_cm)
+            if worse and previous is not None:
                 state = previous[1]          # the step made it worse: back, more damping, and again
                 self.damping *= 10
                 continue
@@ -370,7 +381,27 @@ class Solver:
             H[:, lay.psi, lay.psi] += np.eye(lay.num_expressions) * wp
             g[:, lay.psi] += gp
             self.rms = rms
-            dx, d_eta = self.solve(H, g, weights, mask, eta_terms, self.damping)
+            # Projected Gauss-Newton on psi's box [0, 1]: a weight at a bound that the gradient pushes outwards
+            # is held for this step (clamping after a free step stalls: measured 0.6 against 0.2 mm).
+            psi = state.psi.double().numpy()
+            bound = np.zeros(g.shape, bool)
+            bound[:, lay.psi] = ((psi <= 0) & (g[:, lay.psi] > 0)) | ((psi >= 1) & (g[:, lay.psi] < 0))
+            try:
+                if not (np.isfinite(H).all() and np.isfinite(g).all()):
+                    raise np.linalg.LinAlgError("non-finite normal equations")
+                try:
+                    dx, d_eta = self.solve(H, g, weights, mask, eta_terms, self.damping, bound)
+                except np.linalg.LinAlgError:
+                    # psi's block from every vertex against the subsampled cross terms can leave the reduced
+                    # system indefinite; with the subsample's own block added it is positive definite.
+                    H[:, lay.psi, lay.psi] += self.psi_subsampled
+                    dx, d_eta = self.solve(H, g, weights, mask, eta_terms, self.damping, bound)
+            except np.linalg.LinAlgError as error:   # no step from here: back to the last state, more damping
+                self.report.setdefault("failed_solves", []).append(f"{name}: {error}")
+                if previous is not None:
+                    state = previous[1]
+                self.damping *= 10
+                continue
             previous = (total, state, robust_cm)
             state = self.apply(state, dx, d_eta if with_eta else 0.0)
             if after_step is not None:
