@@ -9,11 +9,12 @@ and the defaults; the YAML files hold only what differs):
     (``data.cervical_prior``, its settings under ``data.prior``), one person each; validation sequences
     come from another seed (``val_seed`` != ``seed``), so from new persons;
   - ``data=theta_seq data.path=...``, :class:`ThetaSeqData`: the user's own theta sequences (a ``.npy``
-    ``[T,8,3]`` or a folder of them, HACK release layout: bone frames of ``rig``; per frame, so no frame
-    rate), alone or mixed with the prior: ``data.prior_weight`` is the share of every batch drawn from the
-    prior (0 = the files alone).  Several files are split by file (``val_fraction`` of them, chosen with
-    ``split_seed``), a single file by time (its last ``val_fraction`` of frames); validation is on the
-    held-out frames of the files only.
+    ``[T,8,3]``, HACK release layout: bone frames of ``rig``; per frame, so no frame rate; or the
+    ``params.npz`` of a fit, ``motion.fit``, whose rig checksum must be ``rig``'s; or a folder of either,
+    e.g. a folder of fit folders), alone or mixed with the prior: ``data.prior_weight`` is the share of every
+    batch drawn from the prior (0 = the files alone).  Several files are split by file (``val_fraction`` of
+    them, chosen with ``split_seed``), a single file by time (its last ``val_fraction`` of frames);
+    validation is on the held-out frames of the files only.
 Head orientations are the rig's forward kinematics of the poses (``cfg.rig``, built-in by default).
 Poses are handled in the joints' anatomical frames (``HeadNeckModel.to_anatomical``), where the limits and
 the prior are written; real sequences arrive in bone frames and are converted.  The trained model holds
@@ -104,7 +105,9 @@ class ThetaSeqData:
     """``data=theta_seq``: real theta sequences, alone or mixed with the prior."""
 
     kind: str = "theta_seq"
-    path: str = REQUIRED             # a .npy [T,8,3] (bone frames, axis-angle radians) or a folder of them
+    # a .npy [T,8,3] (bone frames, axis-angle radians), a fit's params.npz (motion.fit; checked against rig=),
+    # or a folder of them (e.g. a folder of fit folders)
+    path: str = REQUIRED
     val_fraction: float = 0.2        # files held out (several files) or last frames held out (one file)
     split_seed: int = 0              # which files are held out
     prior_weight: float = 0.0        # share of each batch drawn from the prior; 0 = the files alone
@@ -188,7 +191,7 @@ class Task:
                            f"{data.prior.seconds:g} s at {data.prior.fps:g} fps)")
             return [train], [val], description
         sequences = [self.rig.to_anatomical(torch.as_tensor(s.theta)).numpy()  # release layout: bone frames
-                     for s in load_theta_sequences(data.path, self.rig.num_joints)]
+                     for s in load_theta_sequences(data.path, self.rig.num_joints, self.rig.rig)]
         return split_sequences(sequences, float(data.val_fraction), int(data.split_seed), str(data.path))
 
     def _frames(self, theta: np.ndarray) -> dict[str, torch.Tensor]:

@@ -20,6 +20,10 @@ clamped to the target's limits, and brought into the target's bone frames (``fro
 unit gains and no clamping the anatomical rotations are carried over exactly.  psi goes by expression
 name; tau (UV units of the larynx map, which the giraffe keeps) and eta carry over as they are.
 
+A fitted clip (``motion.fit``) keeps its placement (``root_rotation``, ``root_translation``) and
+``fit_rms_mm``; its ``shape_offset`` (the person's rest mesh) carries over onto ``character=human`` only,
+and the meshes and exports pose that person (``scene.characters.person_rig``).
+
 Outputs in ``out_dir``: ``params.npz`` for the target (theta in the target's bone frames, its head
 rotation, ``rig`` = the target's rig file, with its checksum: ``character.npz`` written here when the
 character is built on the fly), ``meshes/frame_00000.ply`` ... (``mesh_format=obj`` with UVs), and

@@ -24,8 +24,9 @@ One binary glTF holds the character at its real size and its whole clip:
 - one animation at the clip's frame times: each joint's local rotation (unit quaternions, rest rotation
   times the rotation of theta) and the morph weights.
 
-Identity shape (beta) is not in ``params.npz`` and is left at 0.  Targets that touch few vertices are
-stored as sparse accessors.
+Identity shape (beta) is not in ``params.npz`` and is left at 0; a fitted person's ``shape_offset``
+(``motion.fit``; ``data.params``) is added to the template, so the file holds that person's mesh
+(``scene.characters.person_rig``).  Targets that touch few vertices are stored as sparse accessors.
 """
 from __future__ import annotations
 
