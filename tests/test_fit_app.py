@@ -192,10 +192,12 @@ def test_motion_fit_ply_meshes_end_to_end(tmp_path, builtin_rig, capsys):
     truth = capture_sequence(builtin_rig, 4)
     write_frames(tmp_path / "capture", truth["vertices_mm"], builtin_rig.rig.faces)
     out = tmp_path / "fit"
-    run_fit([f"input={tmp_path / 'capture'}", "kind=meshes", "units=mm", f"out_dir={out}", *FAST])
+    run_fit([f"input={tmp_path / 'capture'}", "kind=meshes", "units=mm", f"out_dir={out}", "export=[usd]", *FAST])
     log = capsys.readouterr().out
     params = load_params(out / "params.npz")
     assert params.theta.shape == (4, 8, 3) and np.abs(params.theta[:, 0]).max() == 0.0
+    from tests.test_usd import baked_error_cm  # USD's own skinning of the fit's anim.usdc against the rig
+    assert baked_error_cm(out / "anim.usdc", builtin_rig, params).max() < 0.01
     error = np.degrees(np.linalg.norm(params.theta[:, 1:] - truth["theta"][:, 1:], axis=-1)).mean()
     rest = np.degrees(np.linalg.norm(truth["theta"][:, 1:], axis=-1)).mean()
     assert error < 1.5 and error < 0.2 * rest, (error, rest)

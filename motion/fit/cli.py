@@ -2,7 +2,7 @@
 
     python -m motion.fit input=DIR kind=meshes [rig=hack_rig.npz] [units=cm] [fps=30] out_dir=OUT  # rig topology
     python -m motion.fit input=DIR kind=scans  [rig=hack_rig.npz] units=mm [fps=30] out_dir=OUT     # any topology
-    python -m motion.fit input=DIR kind=meshes ... export=[glb,fbx,html,mp4] [meshes=true]          # as infer.py
+    python -m motion.fit input=DIR kind=meshes ... export=[glb,fbx,html,mp4,usd] [meshes=true]      # as infer.py
     python -m motion.fit input=take.npz kind=meshes out_dir=OUT      # an .npz holding vertices [T,V,3]
     python -m motion.fit input=DIR kind=scans units=mm fit_shape=true out_dir=OUT   # another person's shape
 
@@ -26,28 +26,26 @@ is the rig-frame head pose, the placement excluded), ``params.csv`` (a row per f
 the placement), ``plot.png`` (the residual over time, tau and eta, the joints), ``report.json`` (frames/s,
 the worst frames, per joint how well the data determine it, the settings), ``meshes/`` with ``meshes=true``
 and the exports with ``export=[...]`` (in the rig's frame, the fitted person's shape included: ``anim.glb``,
-``preview.mp4``, ``viewer.html``, ``anim.fbx``), as infer.py writes them.  The log names the joints the skin
-does not pin down.  The outputs feed ``train.py task=head2neck data=theta_seq data.path=<fits>`` and
+``preview.mp4``, ``viewer.html``, ``anim.fbx``, ``anim.usdc``), as infer.py writes them.  The log names the
+joints the skin does not pin down.  The outputs feed ``train.py task=head2neck data=theta_seq data.path=<fits>`` and
 ``train.py task=larynx_transformer data=pairs data.path=<fits>`` (a folder of fit folders), ``motion.retarget
 source=OUT/params.npz`` and every exporter.
 """
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import models.fit
 from base.cli import REQUIRED, register_config, to_dataclass
 from base.errors import InputError
 from base.files import atomic_folder, require_new_folder
 from base.progress import progress_bar
 from data.assets import RigData
 from data.procedural_rig import build_procedural_rig
-from models.fit import FitSettings
+from models.fit import FitSettings, fit_meshes, fit_scans
 from models.rig import HeadNeckModel
 from motion.fit.inputs import KINDS, UNITS_CM, read_capture
 from motion.fit.outputs import fit_params, fit_report, plot_fit, summary_lines, write_report
@@ -55,6 +53,7 @@ from motion.pipeline.config import EXPORTS, MESH_FORMATS, InferConfig
 from motion.pipeline.models import Models
 from motion.pipeline.outputs import write_outputs
 from scene.fbx import FBX_UNITS, blender_executable
+from scene.usd import USD_FORMATS, USD_UNITS
 
 
 @dataclass
@@ -70,8 +69,10 @@ class FitCli:
     fit_shape: bool = False         # fit the person's shape (a smooth offset of the rest mesh), as solver.fit_shape
     meshes: bool = False            # one posed mesh per frame in meshes/ (the rig's frame)
     mesh_format: str = "ply"        # ply | obj
-    export: list[str] = field(default_factory=list)  # glb, mp4, html, fbx (as infer.py)
+    export: list[str] = field(default_factory=list)  # glb, mp4, html, fbx, usd (as infer.py)
     fbx_units: str = "cm"           # cm | m
+    usd_format: str = "usdc"        # usdc | usda | usdz (anim.<usd_format>, scene.usd)
+    usd_units: str = "cm"           # cm (metersPerUnit 0.01) | m
     plot: bool = True
     progress: bool = True           # progress bars while reading and fitting
     threads: int = 2
@@ -91,6 +92,10 @@ class FitCli:
             raise ValueError(f"export={unknown}: expected some of {', '.join(EXPORTS)}")
         if self.fbx_units not in FBX_UNITS:
             raise ValueError(f"fbx_units={self.fbx_units}: expected one of {', '.join(FBX_UNITS)}")
+        if self.usd_format not in USD_FORMATS:
+            raise ValueError(f"usd_format={self.usd_format}: expected one of {', '.join(USD_FORMATS)}")
+        if self.usd_units not in USD_UNITS:
+            raise ValueError(f"usd_units={self.usd_units}: expected one of {', '.join(USD_UNITS)}")
 
 
 register_config("fit_schema", FitCli)
@@ -101,8 +106,6 @@ def solver_settings(settings: FitCli) -> FitSettings:
     solver = settings.solver
     values = {f.name: getattr(solver, f.name) for f in dataclasses.fields(solver)}
     values["fit_shape"] = bool(settings.fit_shape or solver.fit_shape)
-    if values["fit_shape"] and importlib.util.find_spec("models.fit.shape") is None:
-        raise InputError("fit_shape=true: this version of models.fit has no shape term yet")
     if isinstance(values.get("iterations"), list):
         values["iterations"] = tuple(values["iterations"])
     return FitSettings(**values)
@@ -110,10 +113,7 @@ def solver_settings(settings: FitCli) -> FitSettings:
 
 def fitter(kind: str):
     """``models.fit.fit_meshes`` or ``fit_scans``."""
-    name = "fit_meshes" if kind == "meshes" else "fit_scans"
-    if not hasattr(models.fit, name):
-        raise InputError(f"kind={kind}: this version of models.fit has no {name} yet")
-    return getattr(models.fit, name)
+    return fit_meshes if kind == "meshes" else fit_scans
 
 
 def name_frame(message: str, names: list[str]) -> str:
@@ -159,7 +159,8 @@ def run(cfg) -> dict:
                  "kind": settings.kind, "units": settings.units, "fit_shape": solver.fit_shape}
     params = fit_params(result, model, float(settings.fps), rig_label(settings.rig), producers)
     outputs = InferConfig(meshes=settings.meshes, mesh_format=settings.mesh_format, export=list(settings.export),
-                          fbx_units=settings.fbx_units, plot=False)
+                          fbx_units=settings.fbx_units, usd_format=settings.usd_format,
+                          usd_units=settings.usd_units, plot=False)
     lines = []
     with atomic_folder(out_dir) as staging:
         output_seconds = write_outputs(outputs, Models(rig=model, rig_name=rig_label(settings.rig)), params, staging,
