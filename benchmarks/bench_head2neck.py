@@ -260,6 +260,114 @@ def calibration() -> None:
         print(f"{frames:8d}" + "".join(f"{c:18.2f}" for c in cells) + f"{seconds:10.0f}", flush=True)
 
 
+# ----------------------------------------------------------------------------- drifting stand-in (issue 58)
+
+DRIFT_SHARE, DRIFT_DEG, DRIFT_SECONDS, DRIFT_FPS = 0.25, 2.5, 1.5, 30.0
+
+
+def slow_latent(frames: int, seconds: float, fps: float, rng: np.random.Generator) -> np.ndarray:
+    """A slow zero-mean latent of unit standard deviation: white noise smoothed by a Gaussian of ``seconds``."""
+    width = int(round(seconds * fps))
+    kernel = np.exp(-0.5 * (np.arange(-4 * width, 4 * width + 1) / width) ** 2)
+    smooth = np.convolve(rng.normal(size=frames + 8 * width), kernel / kernel.sum(), "valid")[:frames]
+    return (smooth - smooth.mean()) / smooth.std()
+
+
+def drifting_standin(rig, seed: int = 0, share: float = DRIFT_SHARE, drift_deg: float = DRIFT_DEG,
+                     seconds: float = DRIFT_SECONDS) -> torch.Tensor:
+    """Anatomical theta [500,8,3] that is not a function of head orientation, as in a HACK fit (issue 58).
+
+    The heads of ``standin_recording(seed)`` solved in HACK's style with ``share`` of the axial rotation at
+    C1-C2 (``tests/hack_standin.py``; the `hack` preset learnt 0.5), replayed so that the second half revisits
+    the first half's orientations (even frames, then odd frames: ~1.3 deg from the nearest earlier head);
+    then a slow latent of its own (``seconds`` smoothing, 30 fps) turns C1-C2 by ``drift_deg`` (standard
+    deviation) with C6-C7 .. C2-C3 counter-rotating by a fifth each, and a second latent moves flexion between
+    O-C1 and the same lower levels (half the size); the exact correction then restores each frame's head.
+    Independent of the head, so nothing that reads the head alone can predict it."""
+    from hack_standin import hack_standin
+
+    from base.rotations import axis_angle_to_euler, euler_to_axis_angle
+    from models.head2neck import correct_to_head
+
+    solved = hack_standin(rig, seed, share)
+    solved = torch.cat([solved[0::2], solved[1::2]])
+    rng = np.random.default_rng(1000 + seed)
+    axial = np.radians(drift_deg) * slow_latent(len(solved), seconds, DRIFT_FPS, rng)
+    sagittal = np.radians(drift_deg / 2) * slow_latent(len(solved), seconds * 4 / 3, DRIFT_FPS, rng)
+    euler = axis_angle_to_euler(solved.double()).numpy()
+    euler[:, 6, 1] += axial
+    euler[:, 1:6, 1] -= axial[:, None] / 5
+    euler[:, 7, 0] += sagittal
+    euler[:, 1:6, 0] -= sagittal[:, None] / 5
+    drifted = euler_to_axis_angle(torch.tensor(euler)).float()
+    return correct_to_head(drifted, head_rotations(rig, solved), rig)
+
+
+def joint_error_deg(theta: torch.Tensor, truth: torch.Tensor) -> float:
+    from base.rotations import axis_angle_to_matrix, relative_angle
+
+    return float(torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), axis_angle_to_matrix(truth))).mean())
+
+
+def nearest_neighbour(calibration: torch.Tensor, test: torch.Tensor, rig) -> float:
+    """The nearest-neighbour bound: each test frame takes the theta of the calibration frame whose head points
+    nearest to its own (angle between head orientations), corrected to its head; mean joint error (deg)."""
+    from base.rotations import relative_angle
+    from models.head2neck import correct_to_head
+
+    known, wanted = head_rotations(rig, calibration), head_rotations(rig, test)
+    nearest = torch.stack([relative_angle(h[None], known).argmin() for h in wanted])
+    return joint_error_deg(correct_to_head(calibration[nearest], wanted, rig), test)
+
+
+def run_theta_seq(rig, calibration: torch.Tensor, test: torch.Tensor, overrides: list[str]) -> tuple[dict, float]:
+    """``python train.py task=head2neck data=theta_seq`` on a folder of two files (calibration frames, test
+    frames; the test file held out), bone frames of the built-in rig: (eval.json, wall seconds)."""
+    from base.cli import compose_config
+    from data.splits import split_by_file
+    from tasks import loop
+
+    split_seed = next(s for s in range(100) if split_by_file(["a", "b"], 0.5, s)[1] == ["b"])
+    with tempfile.TemporaryDirectory() as folder:
+        folder = Path(folder)
+        (folder / "data").mkdir()
+        np.save(folder / "data" / "a.npy", rig.from_anatomical(calibration).numpy())
+        np.save(folder / "data" / "b.npy", rig.from_anatomical(test).numpy())
+        cfg = compose_config("train", ["task=head2neck", "data=theta_seq", f"data.path={folder / 'data'}",
+                                       "data.val_fraction=0.5", f"data.split_seed={split_seed}",
+                                       "trainer.progress=false", *overrides])
+        start = time.perf_counter()
+        final = loop.fit(cfg, folder / "run")
+        return final, time.perf_counter() - start
+
+
+def preset_error(name: str, rig, truth: torch.Tensor) -> float:
+    with torch.no_grad():
+        return joint_error_deg(rig.to_anatomical(predict_theta(shipped(name), rig, head_rotations(rig, truth))), truth)
+
+
+def drift(seeds: list[int], fixed: bool) -> None:
+    """Default calibration on the first half of the drifting stand-in, scored on its second half, beside both
+    presets and the nearest-neighbour bound; ``fixed``: also the old advice (``data.calibrate=false``: the
+    files alone, and half of each batch from the hack prior; 2000 steps from scratch)."""
+    rig = HeadNeckModel.builtin()
+    for seed in seeds:
+        truth = drifting_standin(rig, seed)
+        first, second = truth[:250], truth[250:]
+        print(f"\ndrifting stand-in, seed {seed}: calibrated on frames 0-249, scored on 250-499 (joint error, deg)")
+        print(f"  nearest-neighbour bound {nearest_neighbour(first, second, rig):.3f}; preset hack "
+              f"{preset_error('hack', rig, second):.3f}, default {preset_error('default', rig, second):.3f}",
+              flush=True)
+        final, wall = run_theta_seq(rig, first, second, [])
+        print(f"  default calibration: {final['joint_err_deg']:.3f} ({wall:.0f} s, head max "
+              f"{final['head_err_max_deg']:.1e} deg, inside limits {final['within_limits']:.4f})", flush=True)
+        if fixed:
+            for label, extra in (("files alone", []), ("hack prior 0.5", ["data.prior_weight=0.5",
+                                                                           "data.prior.style=hack"])):
+                final, wall = run_theta_seq(rig, first, second, ["data.calibrate=false", *extra])
+                print(f"  data.calibrate=false, {label}: {final['joint_err_deg']:.3f} ({wall:.0f} s)", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", default=None, help="a head2neck checkpoint (default: random weights)")
@@ -271,13 +379,18 @@ def main() -> None:
     parser.add_argument("--train", action="store_true", help="also time a default training run")
     parser.add_argument("--styles", action="store_true", help="shares and errors of the in-vivo and HACK styles")
     parser.add_argument("--calibration", action="store_true", help="frames of a recording against its error")
+    parser.add_argument("--drift", type=int, nargs="*", default=None, metavar="SEED",
+                        help="default calibration on the drifting stand-in (seeds; none given: 0 1 2)")
+    parser.add_argument("--fixed", action="store_true", help="with --drift: also data.calibrate=false runs")
     args = parser.parse_args()
-    if args.styles or args.calibration:
+    if args.styles or args.calibration or args.drift is not None:
         torch.set_num_threads(1)
         if args.styles:
             styles(args.rig)
         if args.calibration:
             calibration()
+        if args.drift is not None:
+            drift(args.drift or [0, 1, 2], args.fixed)
         return
     inference(args)
     if args.accuracy:
