@@ -223,46 +223,32 @@ def errors_of(models: dict, rig, truth: torch.Tensor, head: torch.Tensor) -> tup
 
 
 CALIBRATION_FRAMES = (50, 150, 300, 500, 1500)
-CALIBRATION_PRIOR_WEIGHTS = (0.0, 0.5)
 
 
-def calibration() -> None:
-    """Error on a held-out session (seed 3) of ``data=theta_seq`` runs on the first N frames of a recording."""
+def calibration(frames_list: list[int], fixed: bool) -> None:
+    """Error on a held-out session (seed 3) of the default ``data=theta_seq`` calibration on the first N frames
+    of a HACK-style recording (seeds 0-2, 1500 frames); ``fixed``: also the files alone from scratch
+    (``data.calibrate=false``, 2000 steps: the advice before issue 58)."""
     from hack_standin import hack_standin
 
-    from base.cli import compose_config
-    from data.splits import split_by_file
-    from tasks import loop
-
     rig = HeadNeckModel.builtin()
-    recording = torch.cat([rig.from_anatomical(hack_standin(rig, seed)) for seed in (0, 1, 2)]).numpy()
-    held_out = rig.from_anatomical(hack_standin(rig, 3)).numpy()
-    split_seed = next(s for s in range(100) if split_by_file(["a", "b"], 0.5, s)[1] == ["b"])
+    recording = torch.cat([hack_standin(rig, seed) for seed in (0, 1, 2)])
+    held_out = hack_standin(rig, 3)
     print(f"calibration: data=theta_seq on the first N of {len(recording)} frames, scored on {len(held_out)} "
-          f"held-out frames (mean joint error, deg)")
-    print(f"{'frames':>8s}" + "".join(f"{'prior_weight ' + str(w):>18s}" for w in CALIBRATION_PRIOR_WEIGHTS)
-          + f"{'seconds':>10s}")
-    for frames in CALIBRATION_FRAMES:
-        cells, seconds = [], 0.0
-        for weight in CALIBRATION_PRIOR_WEIGHTS:
-            with tempfile.TemporaryDirectory() as folder:
-                folder = Path(folder)
-                (folder / "data").mkdir()
-                np.save(folder / "data" / "a.npy", recording[:frames])
-                np.save(folder / "data" / "b.npy", held_out)
-                cfg = compose_config("train", ["task=head2neck", "data=theta_seq", f"data.path={folder / 'data'}",
-                                               "data.val_fraction=0.5", f"data.split_seed={split_seed}",
-                                               f"data.prior_weight={weight}", "trainer.progress=false"])
-                start = time.perf_counter()
-                final = loop.fit(cfg, folder / "run")
-                seconds += time.perf_counter() - start
-            cells.append(final["joint_err_deg"])
-        print(f"{frames:8d}" + "".join(f"{c:18.2f}" for c in cells) + f"{seconds:10.0f}", flush=True)
+          f"held-out frames (mean joint error, deg); preset hack {preset_error('hack', rig, held_out):.3f}, "
+          f"default {preset_error('default', rig, held_out):.3f}")
+    for frames in frames_list:
+        final, wall = run_theta_seq(rig, recording[:frames], held_out, [])
+        line = f"{frames:6d} frames: default calibration {final['joint_err_deg']:.3f} ({wall:.0f} s)"
+        if fixed:
+            final, wall = run_theta_seq(rig, recording[:frames], held_out, ["data.calibrate=false"])
+            line += f"; files alone, 2000 steps {final['joint_err_deg']:.3f} ({wall:.0f} s)"
+        print(line, flush=True)
 
 
 # ----------------------------------------------------------------------------- drifting stand-in (issue 58)
 
-DRIFT_SHARE, DRIFT_DEG, DRIFT_SECONDS, DRIFT_FPS = 0.25, 2.5, 1.5, 30.0
+DRIFT_SHARE, DRIFT_DEG, DRIFT_SECONDS, DRIFT_FPS = 0.3, 3.0, 1.5, 30.0
 
 
 def slow_latent(frames: int, seconds: float, fps: float, rng: np.random.Generator) -> np.ndarray:
@@ -368,6 +354,62 @@ def drift(seeds: list[int], fixed: bool) -> None:
                 print(f"  data.calibrate=false, {label}: {final['joint_err_deg']:.3f} ({wall:.0f} s)", flush=True)
 
 
+MOTION_LAGS = (1, 5)     # frames back: the head's angular velocity and its motion over a short history
+MOTION_SCALE = 30.0      # radians per frame -> about radians per second at 30 fps (the features' unit size)
+
+
+def head_motion(theta: torch.Tensor, rig) -> torch.Tensor:
+    """[T, 3 * len(MOTION_LAGS)]: per lag k, the world rotation vector taking the head at frame t - k to its
+    orientation at t, divided by k and scaled (the first frames reuse frame 0)."""
+    from base.rotations import matrix_to_axis_angle
+
+    head = head_rotations(rig, theta)
+    columns = []
+    for lag in MOTION_LAGS:
+        before = head[(torch.arange(len(head)) - lag).clamp(min=0)]
+        columns.append(matrix_to_axis_angle(head @ before.transpose(1, 2)) * MOTION_SCALE / lag)
+    return torch.cat(columns, 1)
+
+
+def motion_input(seeds: list[int]) -> None:
+    """Does the head's recent motion help?  The calibration's candidates without the prior (from the hack
+    preset, and from scratch; 25/100/300 steps), with and without ``head_motion`` as extra input (zero-initialised
+    weights, so the preset starts unchanged): held-out blocks of the first half of the drifting stand-in, and
+    its second half after training on the whole first half."""
+    from tasks.head2neck_calibration import (
+        CalibrationConfig,
+        contiguous_blocks,
+        fold_frames,
+        load_preset,
+    )
+    from tasks.head2neck_stack import FrameBank, Member, StackedMLP, StackSettings, train_stack
+
+    config, rig = CalibrationConfig(), HeadNeckModel.builtin()
+    settings = StackSettings(config.batch_size, config.lr, config.warmup_steps, config.grad_clip, 1.0, 1.0, 1e-4)
+    lengths = [0, *config.steps]
+    starts = {"from hack": load_preset("hack"), "scratch": Head2NeckMLP(Head2NeckConfig())}
+    for seed in seeds:
+        truth = drifting_standin(rig, seed)
+        motion = head_motion(truth, rig)
+        half = len(truth) // 2
+        blocks = contiguous_blocks(half, config.folds)
+        print(f"\nhead motion as input, drifting stand-in seed {seed}: joint error (deg) after {lengths} steps")
+        for name, model in starts.items():
+            for extra in (None, motion):
+                bank = FrameBank.build(truth, rig, model, extra)
+                empty = torch.zeros(0, dtype=torch.long)
+                members = [Member(fold_frames(half, b, config.gap), empty, 0.0, torch.arange(*b)) for b in blocks]
+                members.append(Member(torch.arange(half), empty, 0.0, torch.arange(half, len(truth))))
+                width = 0 if extra is None else extra.shape[1]
+                errors = train_stack(StackedMLP([model] * len(members), width), bank, members, rig, settings,
+                                     lengths, config.seed)
+                folds = [float(torch.cat(errors[n][:-1]).mean()) for n in lengths]
+                second = [float(errors[n][-1].mean()) for n in lengths]
+                label = f"{name}, {'orientation + motion' if width else 'orientation'}"
+                print(f"  {label:34s} held-out blocks " + " ".join(f"{e:.3f}" for e in folds)
+                      + "; second half " + " ".join(f"{e:.3f}" for e in second), flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", default=None, help="a head2neck checkpoint (default: random weights)")
@@ -378,19 +420,25 @@ def main() -> None:
     parser.add_argument("--accuracy", action="store_true", help="stand-in recording and shifted-prior errors")
     parser.add_argument("--train", action="store_true", help="also time a default training run")
     parser.add_argument("--styles", action="store_true", help="shares and errors of the in-vivo and HACK styles")
-    parser.add_argument("--calibration", action="store_true", help="frames of a recording against its error")
+    parser.add_argument("--calibration", type=int, nargs="*", default=None, metavar="FRAMES",
+                        help="frames of a recording against its error (none given: 50 150 300 500 1500)")
     parser.add_argument("--drift", type=int, nargs="*", default=None, metavar="SEED",
                         help="default calibration on the drifting stand-in (seeds; none given: 0 1 2)")
-    parser.add_argument("--fixed", action="store_true", help="with --drift: also data.calibrate=false runs")
+    parser.add_argument("--motion", type=int, nargs="*", default=None, metavar="SEED",
+                        help="the head's recent motion as extra input, on the drifting stand-in (seeds)")
+    parser.add_argument("--fixed", action="store_true", help="with --drift, --calibration: also "
+                        "data.calibrate=false runs (the advice before issue 58)")
     args = parser.parse_args()
-    if args.styles or args.calibration or args.drift is not None:
+    if args.styles or args.calibration is not None or args.drift is not None or args.motion is not None:
         torch.set_num_threads(1)
         if args.styles:
             styles(args.rig)
-        if args.calibration:
-            calibration()
+        if args.calibration is not None:
+            calibration(args.calibration or list(CALIBRATION_FRAMES), args.fixed)
         if args.drift is not None:
             drift(args.drift or [0, 1, 2], args.fixed)
+        if args.motion is not None:
+            motion_input(args.motion or [0, 1, 2])
         return
     inference(args)
     if args.accuracy:
