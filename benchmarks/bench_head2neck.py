@@ -264,8 +264,10 @@ def drifting_standin(rig, seed: int = 0, share: float = DRIFT_SHARE, drift_deg: 
     """Anatomical theta [500,8,3] that is not a function of head orientation, as in a HACK fit (issue 58).
 
     The heads of ``standin_recording(seed)`` solved in HACK's style with ``share`` of the axial rotation at
-    C1-C2 (``tests/hack_standin.py``; the `hack` preset learnt 0.5), replayed so that the second half revisits
-    the first half's orientations (even frames, then odd frames: ~1.3 deg from the nearest earlier head);
+    C1-C2 (``tests/hack_standin.py``; the `hack` preset learnt 0.5), replayed as four passes through the
+    session at a quarter of its rate (frames 0, 4, 8, ...; then 2, 6, ...; 1, 5, ...; 3, 7, ...), so that each
+    half goes through it twice and the second half revisits the first half's orientations, as a user repeats
+    turns and nods;
     then a slow latent of its own (``seconds`` smoothing, 30 fps) turns C1-C2 by ``drift_deg`` (standard
     deviation) with C6-C7 .. C2-C3 counter-rotating by a fifth each, and a second latent moves flexion between
     O-C1 and the same lower levels (half the size); the exact correction then restores each frame's head.
@@ -276,7 +278,7 @@ def drifting_standin(rig, seed: int = 0, share: float = DRIFT_SHARE, drift_deg: 
     from models.head2neck import correct_to_head
 
     solved = hack_standin(rig, seed, share)
-    solved = torch.cat([solved[0::2], solved[1::2]])
+    solved = torch.cat([solved[offset::4] for offset in (0, 2, 1, 3)])
     rng = np.random.default_rng(1000 + seed)
     axial = np.radians(drift_deg) * slow_latent(len(solved), seconds, DRIFT_FPS, rng)
     sagittal = np.radians(drift_deg / 2) * slow_latent(len(solved), seconds * 4 / 3, DRIFT_FPS, rng)
