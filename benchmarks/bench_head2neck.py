@@ -225,7 +225,7 @@ def errors_of(models: dict, rig, truth: torch.Tensor, head: torch.Tensor) -> tup
 CALIBRATION_FRAMES = (50, 150, 300, 500, 1500)
 
 
-def calibration(frames_list: list[int], fixed: bool) -> None:
+def calibration(frames_list: list[int], fixed: bool, overrides: list[str]) -> None:
     """Error on a held-out session (seed 3) of the default ``data=theta_seq`` calibration on the first N frames
     of a HACK-style recording (seeds 0-2, 1500 frames); ``fixed``: also the files alone from scratch
     (``data.calibrate=false``, 2000 steps: the advice before issue 58)."""
@@ -238,7 +238,7 @@ def calibration(frames_list: list[int], fixed: bool) -> None:
           f"held-out frames (mean joint error, deg); preset hack {preset_error('hack', rig, held_out):.3f}, "
           f"default {preset_error('default', rig, held_out):.3f}")
     for frames in frames_list:
-        final, wall = run_theta_seq(rig, recording[:frames], held_out, [])
+        final, wall = run_theta_seq(rig, recording[:frames], held_out, overrides)
         line = f"{frames:6d} frames: default calibration {final['joint_err_deg']:.3f} ({wall:.0f} s)"
         if fixed:
             final, wall = run_theta_seq(rig, recording[:frames], held_out, ["data.calibrate=false"])
@@ -334,26 +334,27 @@ def preset_error(name: str, rig, truth: torch.Tensor) -> float:
         return joint_error_deg(rig.to_anatomical(predict_theta(shipped(name), rig, head_rotations(rig, truth))), truth)
 
 
-def drift(seeds: list[int], fixed: bool) -> None:
-    """Default calibration on the first half of the drifting stand-in, scored on its second half, beside both
-    presets and the nearest-neighbour bound; ``fixed``: also the old advice (``data.calibrate=false``: the
-    files alone, and half of each batch from the hack prior; 2000 steps from scratch)."""
+def drift(seeds: list[int], fixed: bool, overrides: list[str], share: float = DRIFT_SHARE,
+          drift_deg: float = DRIFT_DEG) -> None:
+    """Default calibration on the first half of the drifting stand-in (``share`` at C1-C2, ``drift_deg``),
+    scored on its second half, beside both presets and the nearest-neighbour bound; ``fixed``: also the advice
+    before issue 58 (``data.calibrate=false``: the files alone, 2000 steps from scratch)."""
     rig = HeadNeckModel.builtin()
     for seed in seeds:
-        truth = drifting_standin(rig, seed)
+        truth = drifting_standin(rig, seed, share, drift_deg)
         first, second = truth[:250], truth[250:]
-        print(f"\ndrifting stand-in, seed {seed}: calibrated on frames 0-249, scored on 250-499 (joint error, deg)")
+        print(f"\ndrifting stand-in (C1-C2 share {share:g}, drift {drift_deg:g} deg), seed {seed}: calibrated on "
+              f"frames 0-249, scored on 250-499 (joint error, deg)")
         print(f"  nearest-neighbour bound {nearest_neighbour(first, second, rig):.3f}; preset hack "
               f"{preset_error('hack', rig, second):.3f}, default {preset_error('default', rig, second):.3f}",
               flush=True)
-        final, wall = run_theta_seq(rig, first, second, [])
-        print(f"  default calibration: {final['joint_err_deg']:.3f} ({wall:.0f} s, head max "
+        final, wall = run_theta_seq(rig, first, second, overrides)
+        print(f"  default calibration {' '.join(overrides)}: {final['joint_err_deg']:.3f} ({wall:.0f} s, head max "
               f"{final['head_err_max_deg']:.1e} deg, inside limits {final['within_limits']:.4f})", flush=True)
         if fixed:
-            for label, extra in (("files alone", []), ("hack prior 0.5", ["data.prior_weight=0.5",
-                                                                           "data.prior.style=hack"])):
-                final, wall = run_theta_seq(rig, first, second, ["data.calibrate=false", *extra])
-                print(f"  data.calibrate=false, {label}: {final['joint_err_deg']:.3f} ({wall:.0f} s)", flush=True)
+            final, wall = run_theta_seq(rig, first, second, ["data.calibrate=false"])
+            print(f"  data.calibrate=false (the files alone, 2000 steps from scratch): {final['joint_err_deg']:.3f} "
+                  f"({wall:.0f} s)", flush=True)
 
 
 MOTION_LAGS = (1, 5)     # frames back: the head's angular velocity and its motion over a short history
@@ -426,6 +427,10 @@ def main() -> None:
                         help="frames of a recording against its error (none given: 50 150 300 500 1500)")
     parser.add_argument("--drift", type=int, nargs="*", default=None, metavar="SEED",
                         help="default calibration on the drifting stand-in (seeds; none given: 0 1 2)")
+    parser.add_argument("--drift-share", type=float, default=DRIFT_SHARE, help="with --drift: C1-C2's axial share")
+    parser.add_argument("--drift-deg", type=float, default=DRIFT_DEG, help="with --drift: the drift (deg, s.d.)")
+    parser.add_argument("--overrides", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="with --drift, --calibration: train.py settings of the default calibration runs")
     parser.add_argument("--motion", type=int, nargs="*", default=None, metavar="SEED",
                         help="the head's recent motion as extra input, on the drifting stand-in (seeds)")
     parser.add_argument("--fixed", action="store_true", help="with --drift, --calibration: also "
@@ -436,9 +441,9 @@ def main() -> None:
         if args.styles:
             styles(args.rig)
         if args.calibration is not None:
-            calibration(args.calibration or list(CALIBRATION_FRAMES), args.fixed)
+            calibration(args.calibration or list(CALIBRATION_FRAMES), args.fixed, args.overrides)
         if args.drift is not None:
-            drift(args.drift or [0, 1, 2], args.fixed)
+            drift(args.drift or [0, 1, 2], args.fixed, args.overrides, args.drift_share, args.drift_deg)
         if args.motion is not None:
             motion_input(args.motion or [0, 1, 2])
         return
