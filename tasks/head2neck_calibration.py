@@ -179,19 +179,31 @@ def calibrate(theta: list[torch.Tensor], rig, model_config: Head2NeckConfig, tas
                              float(config.grad_clip), **task_settings)
     announce(f"calibration: {len(frames)} frames in {len(blocks)} contiguous blocks of ~{len(frames) // len(blocks)};"
              f" {len(grid)} candidates x {len(blocks)} folds, lengths {lengths}")
-    scores = _cross_validate(frames, blocks, grid, presets, model_config, prior, config, settings, lengths, rig)
+    per_block: dict = {}
+    scores = _cross_validate(frames, blocks, grid, presets, model_config, prior, config, settings, lengths, rig,
+                             per_block)
     block_error = {name: float(e.mean()) for name, e in preset_errors.items()}
+    preset_blocks = [float(preset_errors[preset][a:b].mean()) for a, b in blocks]
     preset_error = block_error[preset]
     table = [(f"preset {name}", {0: block_error[name]}) for name in PRESET_FILES]
     table += [(c.label(), scores[c]) for c in grid]
-    eligible = lengths if steps is None else [int(steps)]
-    best, best_steps = min(((c, s) for c in grid for s in eligible), key=lambda cs: scores[cs[0]][cs[1]])
-    best_error = scores[best][best_steps]
     _print_table(table, lengths, preset, preset_error, announce)
-    if not best_error < preset_error * (1 - float(config.min_gain)):
-        announce(f"calibration: nothing beats the preset '{preset}' on held-out blocks (best: {best.label()}, "
-                 f"{best_steps} steps, {best_error:.3f} deg against {preset_error:.3f}); keeping the preset")
+    announce(f"per block: preset {preset} " + " ".join(f"{e:.3f}" for e in preset_blocks) + "; " + "; ".join(
+        f"{c.label()} ({n} steps) " + " ".join(f"{e:.3f}" for e in per_block[c][n])
+        for c in grid for n in [min(lengths, key=lambda m, c=c: scores[c][m])]))
+    # Kept only if better than the preset on every block, and on their mean by min_gain: a gain on some blocks
+    # and a loss on another is what a split drifting over the take gives (the second half then loses).
+    eligible = [(c, n) for c in grid for n in (lengths if steps is None else [int(steps)])
+                if scores[c][n] < preset_error * (1 - float(config.min_gain))
+                and all(e < p for e, p in zip(per_block[c][n], preset_blocks))]
+    if not eligible:
+        best, best_steps = min(((c, n) for c in grid for n in lengths), key=lambda cn: scores[cn[0]][cn[1]])
+        announce(f"calibration: nothing beats the preset '{preset}' on every held-out block (lowest mean: "
+                 f"{best.label()}, {best_steps} steps, {scores[best][best_steps]:.3f} deg against "
+                 f"{preset_error:.3f}); keeping the preset")
         return Choice(presets[preset], None, 0, preset, preset_error, preset_error, table)
+    best, best_steps = min(eligible, key=lambda cn: scores[cn[0]][cn[1]])
+    best_error = scores[best][best_steps]
     announce(f"calibration: keeping {best.label()}, {best_steps} steps: {best_error:.3f} deg on held-out blocks "
              f"against the preset '{preset}''s {preset_error:.3f}; training it on all {len(frames)} frames")
     model = _train_final(frames, best, best_steps, presets, model_config, prior, config, settings, rig)
@@ -235,9 +247,9 @@ def _banks(frames: torch.Tensor, grid: list[Candidate], presets: dict, model_con
     return groups
 
 
-def _cross_validate(frames, blocks, grid, presets, model_config, prior, config, settings, lengths, rig
-                    ) -> dict[Candidate, dict[int, float]]:
-    """{candidate: {length: frame-weighted held-out error over the blocks}}."""
+def _cross_validate(frames, blocks, grid, presets, model_config, prior, config, settings, lengths, rig,
+                    blocks_out: dict) -> dict[Candidate, dict[int, float]]:
+    """{candidate: {length: frame-weighted held-out error over the blocks}}; ``blocks_out`` gets each block's."""
     scores: dict[Candidate, dict[int, float]] = {}
     for group in _banks(frames, grid, presets, model_config, prior, config, rig, int(config.seed)).values():
         members, models, keys = [], [], []
@@ -253,6 +265,7 @@ def _cross_validate(frames, blocks, grid, presets, model_config, prior, config, 
             picks = [i for i, key in enumerate(keys) if key == candidate]
             scores[candidate] = {length: float(torch.cat([errors[length][i] for i in picks]).mean())
                                  for length in lengths}
+            blocks_out[candidate] = {length: [float(errors[length][i].mean()) for i in picks] for length in lengths}
     return scores
 
 
