@@ -2,7 +2,9 @@
 shifted prior, and optionally a default training run.
 
     python benchmarks/bench_head2neck.py [--checkpoint last.pt] [--frames 65536] [--threads 2] [--rig hack_rig.npz]
-                                         [--accuracy] [--train] [--styles] [--calibration]
+                                         [--accuracy] [--train] [--styles] [--calibration [N ...]]
+                                         [--drift [SEED ...] [--drift-share 0.3] [--drift-deg 3]] [--fixed]
+                                         [--overrides KEY=VALUE ...] [--motion [SEED ...]]
 
 Inference: ``models.head2neck.predict_theta`` (the 2x512 MLP, then the exact correction with its at most three
 Gauss-Newton steps) on head orientations of the in-vivo prior, in frames per second (target >= 50,000 with 2
@@ -21,8 +23,13 @@ flexion, extension, lateral) of the prior's two styles, ``data.prior.style=inviv
 axial shares of the shipped ``default`` and ``hack`` models on a head turn; then the mean joint error of both
 shipped models, the uniform and the in-vivo split on a HACK-style stand-in (``tests/hack_standin.py``: the
 heads of the stand-in recording, solved per frame with E_sim, E_rot and half the axial rotation at C1-C2).
-``--calibration``: trains ``data=theta_seq`` on the first N frames of a HACK-style stand-in recording
-(seeds 0-2 of the stand-in, 1500 frames) and scores each run on a held-out session (seed 3).
+``--calibration``: the default ``data=theta_seq`` calibration on the first N frames of a HACK-style stand-in
+recording (seeds 0-2 of the stand-in, 1500 frames), each run scored on a held-out session (seed 3).
+``--drift`` (issue 58): the default calibration on the first half of a stand-in whose split drifts independently
+of the head (:func:`drifting_standin`), scored on its second half beside both presets and the nearest-neighbour
+bound (:func:`nearest_neighbour`).  ``--fixed``: also ``data.calibrate=false`` (the files alone, 2000 steps),
+the advice before issue 58; ``--overrides``: settings of the default runs.  ``--motion``: the head's recent
+motion (:func:`head_motion`) as extra input of the calibration's candidates, with and without.
 On a CPU shared with other jobs, OpenMP's busy-waiting threads slow multi-threaded torch down several times;
 this script sets ``OMP_WAIT_POLICY=PASSIVE`` (unless already set) before importing torch, which removes that.
 """
