@@ -413,9 +413,6 @@ def test_the_default_run_takes_its_length_from_the_data_and_keeps_the_best_weigh
     from models.pretrained import evaluated_checkpoint  # what a shipped run's manifest figures belong to
 
     assert evaluated_checkpoint(tmp_path / "run") == "best.pt"
-    with pytest.raises(InputError, match="trainer.max_steps=null: task head2neck does not choose its length"):
-        fit(compose_config("train", ["task=head2neck", "trainer.max_steps=null", "trainer.progress=false"]),
-            tmp_path / "h2n")
 
 
 def test_training_length_scales_with_the_data(tmp_path):
