@@ -248,7 +248,8 @@ def scales(rig, frames: int, seeds: int) -> None:
 
 def cli_run(rig_arg: str | None, seq) -> tuple[float, str]:
     """(seconds, the printed scale line) of ``python -m motion.track`` in-process on the sequence written as
-    8-bit PNG-encoded values in a .npy, without ``cm_per_px=``."""
+    8-bit PNG-encoded values in a .npy, without ``cm_per_px=``, given the larynx's first position (``init_x``,
+    ``init_y``: the search for it is not what is timed)."""
     import contextlib
     import io
 
@@ -259,7 +260,9 @@ def cli_run(rig_arg: str | None, seq) -> tuple[float, str]:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "seq.npy"
         save_npy(path, np.rint(encode_normals(seq.normals) * 255).astype(np.uint8))
-        args = [f"input={path}", f"out={Path(tmp) / 't.csv'}", "plot=null", "progress=false"]
+        x, y = seq.larynx_px[0]
+        args = [f"input={path}", f"out={Path(tmp) / 't.csv'}", "plot=null", "progress=false", f"init_x={x}",
+                f"init_y={y}"]
         if rig_arg:
             args.append(f"rig={rig_arg}")
         printed = io.StringIO()
@@ -272,7 +275,7 @@ def cli_run(rig_arg: str | None, seq) -> tuple[float, str]:
 
 
 def framing(rig, rig_arg: str | None, frames: int, sizes: tuple[int, ...] = FRAMING_SIZES,
-            densities: tuple[int, ...] = FRAMING_PX_PER_CM) -> None:
+            densities: tuple[int, ...] = FRAMING_PX_PER_CM, cli: tuple[int, ...] = FRAMING_PX_PER_CM) -> None:
     overrides = CONDITIONS[FRAMING_CONDITION]
     recording = overrides.get("expressions")
     if recording and not Path(recording).is_file():
@@ -299,7 +302,7 @@ def framing(rig, rig_arg: str | None, frames: int, sizes: tuple[int, ...] = FRAM
             elapsed = time.perf_counter() - started
             found = tracked_r2(rig, seq, estimate.cm_per_px)
             whole = ""
-            if size >= 512:
+            if size >= 512 and px_per_cm in cli:
                 try:
                     seconds, line = cli_run(rig_arg, seq)
                     whole = f"{seconds:5.1f} s ({line.split(',')[0]})"
@@ -320,6 +323,8 @@ def main() -> None:
     parser.add_argument("--sizes", default="256,512", help="frame sides of the framing sweep, comma separated")
     parser.add_argument("--px-per-cm", default=",".join(map(str, FRAMING_PX_PER_CM)),
                         help="pixel densities of the framing sweep, comma separated")
+    parser.add_argument("--cli-px-per-cm", default=",".join(map(str, FRAMING_PX_PER_CM)),
+                        help="pixel densities at which the framing sweep times the whole motion.track run")
     args = parser.parse_args()
     sections = set(args.sections.split(","))
     torch.set_num_threads(1)
@@ -345,7 +350,7 @@ def main() -> None:
         scales(rig, args.frames, args.seeds)
     if "framing" in sections:
         framing(rig, args.rig, args.frames, tuple(int(v) for v in args.sizes.split(",")),
-                tuple(int(v) for v in args.px_per_cm.split(",")))
+                tuple(int(v) for v in args.px_per_cm.split(",")), tuple(int(v) for v in args.cli_px_per_cm.split(",")))
 
 
 if __name__ == "__main__":
