@@ -1,23 +1,37 @@
 """The capture's pixel scale (cm per pixel at the neck) read from its normal maps, when it is not given.
 
-The rig at rest in the default neck view, rendered at ``WORK_CM_PER_PX`` and band-passed like the
-tracker's frames (``motion.track.kernel.bandpass``, its settings scaled to that resolution), gives a
-template of the neck around the larynx point: ``SCALE_TEMPLATE_PX`` (the larynx with the neck's relief
-beside and below it; what the jaw reaches above it is left out).  A frame at an unknown scale c is
-resampled by c / ``WORK_CM_PER_PX`` (to the template's resolution if c is right), band-passed, and matched
-against the template over the whole frame (``cv2.matchTemplate`` TM_CCORR_NORMED); the peak correlation,
-averaged over frames, is largest where c is the capture's scale.  Search: a coarse grid in steps of
-2^(1/4) over the scales in ``SCALE_RANGE_CM_PER_PX`` at which the resampled frame holds the template and
-the frame spans at most ``MAX_VIEW_CM`` (scored on the first ``COARSE_FRAMES`` sampled frames), then steps
-of 2^(1/32) within one coarse step of the best (on every sampled frame: every ``FRAME_STEP``-th of the
-first ``ESTIMATE_FRAMES``), and a parabola through the best three in log scale.
+The rig at rest in the default neck view, rendered at a matching scale (``WORK_CM_PER_PX``) and band-passed
+like the tracker's frames (``motion.track.kernel.bandpass``, its settings scaled to that resolution, the column
+high-pass capped at ``SCALE_COLUMN_HIGHPASS_PX``), gives a template of the neck around the larynx point:
+``SCALE_TEMPLATE_PX`` (the larynx with the neck's relief beside and below it; what the jaw reaches above it is
+left out).  A frame at an unknown scale c is resampled by c / work (to the template's resolution if c is
+right), band-passed, and matched against the template over their overlap (:func:`overlap_peak`): the
+normalised correlation over the part of the template the frame shows, so that a frame framed wider than the
+template (the whole head) holds all of it and a close-up (a neck filling the frame: chin, larynx, lower neck)
+is matched by the part it shows.  The peak correlation, averaged over frames, is largest where c is the
+capture's scale.  Search: a coarse grid in steps of 2^(1/4) over the scales in ``SCALE_RANGE_CM_PER_PX`` at
+which the frame shows between ``MIN_VIEW_CM`` (its short side) and ``MAX_VIEW_CM`` (its long side), at 0.16
+cm/px, on the first ``COARSE_FRAMES`` sampled frames; then steps of 2^(1/32) within ``FINE_REACH`` of the
+coarse curve's parabola vertex, on every sampled frame (every ``FRAME_STEP``-th of the first
+``ESTIMATE_FRAMES``) cut to the template's extent and ``CROP_MARGIN_CM`` around the coarse match, at the
+coarsest matching scale at which the cut spans ``MIN_WORK_PX`` (0.08 cm/px for views under 10 cm); and a
+parabola through the best three in log scale.
+
+Why the frame's borders weigh less (``BORDER_CM``): the band-pass reflects a frame at its edges where the
+template saw the neck beyond; on 6.4 cm of the real rig's neck at rest that read 2.4 % too coarse (+0.6 %
+band-passed with the neck around it), +1.3 % with the borders weighted down (``benchmarks/README.md``).  The
+column high-pass capped at 4.9 cm (the tracker's is 8 cm) for the same reason: close-ups at 30 and 40 px/cm
++2.8 / +4.5 % with 8 cm, +1.4 / +2.8 % with 4.9 cm (3.3 cm: +2.0 / +3.4 %).
 
 Why this template: the tracker's own kernel (the larynx's normal perturbation alone) peaks 9-11 % too
 coarse even on frames of the rig at rest (the neck's relief around the larynx correlates with it at a
 slightly wrong scale); the neck's view as the frames show it is exact at rest.  Head motion and the jaw
-move the estimate: on the real rig's talking-and-moving sequences -2.0 to +2.1 % (``benchmarks/README.md``,
-section "Tracker and renderer").  The rig's neck stands for the subject's: a neck wider or narrower than
-the rig's around the larynx reads as a finer or coarser scale.
+move the estimate (``benchmarks/README.md``, section "Tracker and renderer", framing sweep).  The rig's neck
+stands for the subject's: a neck wider or narrower than the rig's around the larynx reads as a finer or
+coarser scale.
+
+When it cannot decide (no scale matches at ``MIN_SCORE``, or a second peak of the coarse curve, two steps or
+more from the best, comes within ``AMBIGUITY`` of it) the error names every scale compared and its score.
 
 :func:`estimate_scale` estimates; :func:`check_scale` compares a given scale with the estimate and words
 the warning when they differ by more than ``DISAGREEMENT``.
@@ -57,6 +71,8 @@ FINE_STEP = 2.0 ** (1 / 32)
 FINE_REACH = 2.0 ** (1 / 8)              # the fine search's reach around the coarse curve's vertex
 MIN_SCORE = 0.5                         # below this mean peak correlation the frames do not look like the rig's neck
                                         # (the real rig's talking sequences: 0.82-0.94 at their scale)
+AMBIGUITY = 0.03                        # a second coarse peak this close to the best leaves the scale undecided
+                                        # (framing sweep: the best scale leads any other peak by 0.13 or more)
 DISAGREEMENT = 0.15                     # a given scale further than this from the frames' is warned about
 
 
@@ -277,7 +293,23 @@ def estimate_scale(frames: Sequence[np.ndarray], rig, config: BandpassConfig | N
                          f"{coarse[best]:.4g} cm/px, expected at least {MIN_SCORE}; mean peak correlation at each "
                          f"scale compared, cm/px: {_listing(compared)}); give cm_per_px= (the capture's pixel scale "
                          f"at the neck)")
+    rival = _rival(curve, best)
+    if rival is not None:
+        raise InputError(f"the frames match the rig's neck about as well at {coarse[rival]:.4g} cm/px as at "
+                         f"{coarse[best]:.4g} (mean peak correlation {curve[rival]:.2f} and {curve[best]:.2f}; mean "
+                         f"peak correlation at each scale compared, cm/px: {_listing(compared)}); give cm_per_px= "
+                         f"(the capture's pixel scale at the neck)")
     return ScaleEstimate(scale, score, len(frames), compared)
+
+
+def _rival(curve: np.ndarray, best: int) -> int | None:
+    """The index of the coarse curve's best local maximum two steps or more from ``best`` scoring within
+    ``AMBIGUITY`` of it, else None."""
+    values = np.where(np.isfinite(curve), curve, -np.inf)
+    peaks = [i for i in range(len(values)) if abs(i - best) >= 2 and np.isfinite(values[i])
+             and (i == 0 or values[i] > values[i - 1]) and (i == len(values) - 1 or values[i] > values[i + 1])]
+    rival = max(peaks, key=lambda i: values[i], default=None)
+    return rival if rival is not None and values[rival] >= values[best] - AMBIGUITY else None
 
 
 def check_scale(frames: Sequence[np.ndarray], rig, cm_per_px: float, config: BandpassConfig | None = None,
