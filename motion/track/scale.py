@@ -1,19 +1,19 @@
 """The capture's pixel scale (cm per pixel at the neck) read from its normal maps, when it is not given.
 
-The rig at rest in the default neck view, rendered at a matching scale (``WORK_CM_PER_PX``) and band-passed
-like the tracker's frames (``motion.track.kernel.bandpass``, its settings scaled to that resolution, the column
-high-pass capped at ``SCALE_COLUMN_HIGHPASS_PX``), gives a template of the neck around the larynx point:
-``SCALE_TEMPLATE_PX`` (the larynx with the neck's relief beside and below it; what the jaw reaches above it is
-left out).  A frame at an unknown scale c is resampled by c / work (to the template's resolution if c is
-right), band-passed, and matched against the template over their overlap (:func:`overlap_peak`): the
-normalised correlation over the part of the template the frame shows, so that a frame framed wider than the
-template (the whole head) holds all of it and a close-up (a neck filling the frame: chin, larynx, lower neck)
-is matched by the part it shows.  The peak correlation, averaged over frames, is largest where c is the
-capture's scale.  Search: a coarse grid in steps of 2^(1/4) over the scales in ``SCALE_RANGE_CM_PER_PX`` at
-which the frame shows between ``MIN_VIEW_CM`` (its short side) and ``MAX_VIEW_CM`` (its long side), at 0.16
-cm/px, on the first ``COARSE_FRAMES`` sampled frames; then steps of 2^(1/32) within ``FINE_REACH`` of the
-coarse curve's parabola vertex, on every sampled frame (every ``FRAME_STEP``-th of the first
-``ESTIMATE_FRAMES``) cut to the template's extent and ``CROP_MARGIN_CM`` around the coarse match, at the
+The rig at rest in the default neck view, rendered at a matching scale (``WORK_CM_PER_PX``) and band-passed like
+the tracker's frames (``motion.track.kernel.bandpass``, its settings scaled to that resolution, the column high-
+pass and the low-pass capped: ``SCALE_COLUMN_HIGHPASS_PX``, ``SCALE_LOWPASS_SIGMA_PX``), gives a template of the
+neck around the larynx point: ``SCALE_TEMPLATE_PX`` (the larynx with the neck's relief beside and below it; what
+the jaw reaches above it is left out). A frame at an unknown scale c is resampled by c / work (to the template's
+resolution if c is right), band-passed, and matched against the template over their overlap
+(:func:`overlap_peak`): the normalised correlation over the part of the template the frame shows, so that a
+frame framed wider than the template (the whole head) holds all of it and a close-up (a neck filling the frame:
+chin, larynx, lower neck) is matched by the part it shows. The peak correlation, averaged over frames, is
+largest where c is the capture's scale. Search: a coarse grid in steps of 2^(1/4) over the scales in
+``SCALE_RANGE_CM_PER_PX`` at which the frame shows between ``MIN_VIEW_CM`` (its short side) and ``MAX_VIEW_CM``
+(its long side), at 0.16 cm/px, on the first ``COARSE_FRAMES`` sampled frames; then steps of 2^(1/32) within
+``FINE_REACH`` of the coarse curve's parabola vertex, on every sampled frame (every ``FRAME_STEP``-th of the
+first ``ESTIMATE_FRAMES``) cut to the template's extent and ``CROP_MARGIN_CM`` around the coarse match, at the
 coarsest matching scale at which the cut spans ``MIN_WORK_PX`` (0.08 cm/px for views under 10 cm); and a
 parabola through the best three in log scale.
 
@@ -21,7 +21,10 @@ Why the frame's borders weigh less (``BORDER_CM``): the band-pass reflects a fra
 template saw the neck beyond; on 6.4 cm of the real rig's neck at rest that read 2.4 % too coarse (+0.6 %
 band-passed with the neck around it), +1.3 % with the borders weighted down (``benchmarks/README.md``).  The
 column high-pass capped at 4.9 cm (the tracker's is 8 cm) for the same reason: close-ups at 30 and 40 px/cm
-+2.8 / +4.5 % with 8 cm, +1.4 / +2.8 % with 4.9 cm (3.3 cm: +2.0 / +3.4 %).
++2.8 / +4.5 % with 8 cm, +1.4 / +2.8 % with 4.9 cm (3.3 cm: +2.0 / +3.4 %).  The low-pass capped at 0.24 cm
+(the tracker's 0.32): on 90-frame talking sequences at the sweep's twelve framings the real rig's errors span
++0.3 to +2.9 % with 0.32 cm, +0.6 to +1.9 % with 0.24, -0.7 to +2.2 % with 0.16; the built-in rig's -1.3 to
++2.0, -1.8 to +0.8 and -3.1 to -0.4 %.
 
 Why this template: the tracker's own kernel (the larynx's normal perturbation alone) peaks 9-11 % too
 coarse even on frames of the rig at rest (the neck's relief around the larynx correlates with it at a
@@ -55,6 +58,7 @@ from scene.render import DEFAULT_CM_PER_PX
 # while the jaw moves (real rig, five talking sequences: 110 x 80 px errs -0.6 to +2.4 %, 70 x 70 px -0.1 to +3.3 %).
 SCALE_TEMPLATE_PX = (-55, 55, -30, 50)
 SCALE_COLUMN_HIGHPASS_PX = 61           # the column high-pass (px at 0.08 cm/px) is capped at 4.9 cm: see the doc
+SCALE_LOWPASS_SIGMA_PX = 3.0            # the low-pass sigma (px at 0.08 cm/px) is capped at 0.24 cm: see the doc
 SCALE_RANGE_CM_PER_PX = (0.005, 0.64)   # the scales searched (a neck 25 to 1,600 px wide)
 WORK_CM_PER_PX = (0.16, 0.08, 0.04)     # matching scales: the coarse search at the first, the fine one at the
 MIN_WORK_PX = 64                        # coarsest at which the region searched spans this many pixels
@@ -88,10 +92,11 @@ class ScaleEstimate:
 
 
 def _work_bandpass(config: BandpassConfig | None, work: float) -> BandpassConfig:
-    """The band-pass (pixels at 0.08 cm/px, column high-pass capped at ``SCALE_COLUMN_HIGHPASS_PX``) in pixels
-    of ``work`` cm/px."""
+    """The band-pass (pixels at 0.08 cm/px, column high-pass and low-pass capped at ``SCALE_COLUMN_HIGHPASS_PX``
+    and ``SCALE_LOWPASS_SIGMA_PX``) in pixels of ``work`` cm/px."""
     config = config or BandpassConfig()
-    config = replace(config, column_highpass_px=min(config.column_highpass_px, SCALE_COLUMN_HIGHPASS_PX))
+    config = replace(config, column_highpass_px=min(config.column_highpass_px, SCALE_COLUMN_HIGHPASS_PX),
+                     lowpass_sigma_px=min(config.lowpass_sigma_px, SCALE_LOWPASS_SIGMA_PX))
     return config.at_scale(DEFAULT_CM_PER_PX / work)
 
 
