@@ -1,0 +1,141 @@
+"""models.fit on the built-in rig: known parameters back from noisy meshes (better than the per-frame
+baseline), placement from scans, the shape offset for another person, bad input.
+
+The sequences here are our own sinusoids in the anatomical frames (not the cervical prior the solver's
+settings were measured on); scans and the reshaped person come from ``data.fit_captures``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from base.errors import InputError
+from base.rotations import axis_angle_to_matrix, relative_angle
+from data.fit_captures import PersonConfig, ScanConfig, reshaped_person, scan_sequence
+from models.fit import FitSettings, fit_meshes, fit_scans
+from models.rig import HeadNeckModel
+
+FAST = dict(iterations=(1, 2, 6), hessian_vertices=600)
+BASELINE = dict(temporal=False, limit_deg=0.0, **FAST)
+
+
+def sequence(model: HeadNeckModel, frames: int, seed: int, noise_cm: float = 0.1):
+    """Smooth nod + turn + tilt shared over the joints, sparse expressions, a tau ramp, a swaying placement."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames) / 30.0
+    share = np.array([0.02, 0.1, 0.12, 0.12, 0.12, 0.1, 0.3, 0.12])[:, None]
+    head = np.stack([0.5 * np.sin(2.1 * t + 0.3), 0.9 * np.sin(1.3 * t), 0.3 * np.sin(1.7 * t + 1.0)], 1)
+    anatomical = torch.tensor(share[None] * head[:, None], dtype=torch.float32)   # [T,J,3] radians
+    theta = model.from_anatomical(anatomical)
+    psi = torch.zeros(frames, model.num_expressions)
+    active = rng.choice(model.num_expressions, 6, replace=False)
+    psi[:, active] = torch.tensor(0.5 + 0.4 * np.sin(3 * t[:, None] + rng.uniform(0, 6, 6)), dtype=torch.float32)
+    tau = torch.tensor(0.02 * np.sin(2.5 * t), dtype=torch.float32)
+    eta = 0.9
+    rotation = axis_angle_to_matrix(torch.tensor(np.array([0.4, -1.2, 0.3]) + 0.03 * np.sin(t)[:, None],
+                                                 dtype=torch.float32))
+    translation = torch.tensor(np.array([5.0, -3.0, 40.0]) + np.sin(t)[:, None], dtype=torch.float32)
+    with torch.no_grad():
+        posed = model(theta, psi, tau, torch.full((frames,), eta))
+    clean = posed @ rotation.transpose(1, 2) + translation[:, None]
+    noise = torch.tensor(rng.normal(0, noise_cm, clean.shape), dtype=torch.float32)
+    return dict(theta=theta, psi=psi, tau=tau, eta=eta, rotation=rotation, translation=translation, clean=clean,
+                noisy=clean + noise)
+
+
+def joint_error_deg(result, truth) -> float:
+    fitted = axis_angle_to_matrix(torch.tensor(result.theta[:, 1:]))
+    return math.degrees(float(relative_angle(fitted, axis_angle_to_matrix(truth["theta"][:, 1:])).mean()))
+
+
+def head_error_deg(model, result, truth) -> float:
+    head = torch.tensor(result.root_rotation) @ model.head_rotation(torch.tensor(result.theta))
+    return math.degrees(float(relative_angle(head, truth["rotation"] @ model.head_rotation(truth["theta"])).mean()))
+
+
+def vertex_rms_mm(model, result, truth) -> float:
+    with torch.no_grad():
+        posed = model(torch.tensor(result.theta), torch.tensor(result.psi), torch.tensor(result.tau),
+                      torch.full((len(result.tau),), result.eta))
+    placed = posed @ torch.tensor(result.root_rotation).transpose(1, 2) + torch.tensor(result.root_translation)[:, None]
+    return 10 * float(((placed - truth["clean"]) ** 2).sum(-1).mean().sqrt())
+
+
+@pytest.fixture(scope="module")
+def meshes(builtin_rig):
+    truth = sequence(builtin_rig, 12, seed=5)
+    calls = []
+    fitted = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(**FAST), progress=calls.append)
+    baseline = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(**BASELINE))
+    return truth, fitted, baseline, calls
+
+
+def test_fit_meshes_recovers_the_sequence(builtin_rig, meshes):
+    truth, fitted, _, calls = meshes
+    T, J = truth["theta"].shape[:2]
+    assert fitted.theta.shape == (T, J, 3) and fitted.theta.dtype == np.float32
+    assert np.all(fitted.theta[:, 0] == 0)
+    assert fitted.psi.shape == (T, builtin_rig.num_expressions) and fitted.root_rotation.shape == (T, 3, 3)
+    assert joint_error_deg(fitted, truth) < 1.0
+    assert head_error_deg(builtin_rig, fitted, truth) < 0.2
+    assert float(np.sqrt(((fitted.tau - truth["tau"].numpy()) ** 2).mean())) < 0.003
+    assert abs(fitted.eta - truth["eta"]) < 0.05
+    assert vertex_rms_mm(builtin_rig, fitted, truth) < 0.5
+    # The data term's RMS is the noise's (1 mm per axis: sqrt(3) mm per vertex).
+    assert abs(float(np.median(fitted.fit_rms_mm)) - math.sqrt(3)) < 0.1 and fitted.fit_rms_mm.max() < 2.5
+    assert np.isnan(fitted.joint_uncertainty_deg[0]) and np.all(fitted.joint_uncertainty_deg[1:] > 0)
+    assert calls[-1] == T and calls == sorted(calls)
+
+
+def test_temporal_fit_beats_the_per_frame_baseline(meshes):
+    truth, fitted, baseline, _ = meshes
+    assert joint_error_deg(fitted, truth) < 0.8 * joint_error_deg(baseline, truth)
+
+
+def test_fit_scans_recovers_the_placement(builtin_rig):
+    truth = sequence(builtin_rig, 3, seed=7, noise_cm=0.0)
+    # The scanner looks along +z of the capture: turn the face towards it.
+    facing = axis_angle_to_matrix(torch.tensor([[0.0, 0.2, 0.0]])) @ truth["rotation"][:1].transpose(1, 2)
+    clean = truth["clean"] @ facing.transpose(1, 2)
+    clouds = scan_sequence(clean.numpy(), builtin_rig.rig.faces, seed=1, config=ScanConfig(points=4000))
+    result = fit_scans(builtin_rig, clouds, FitSettings(scan_points=2000, **FAST))
+    rotation = facing @ truth["rotation"]
+    head = torch.tensor(result.root_rotation) @ builtin_rig.head_rotation(torch.tensor(result.theta))
+    head_error = relative_angle(head, rotation @ builtin_rig.head_rotation(truth["theta"]))
+    assert math.degrees(float(head_error.max())) < 8.0     # the right way round (a flip is 180)
+    centre = builtin_rig.template.mean(0)
+    with torch.no_grad():
+        fitted_centre = torch.tensor(result.root_rotation) @ centre + torch.tensor(result.root_translation)
+        true_centre = (facing @ (truth["rotation"] @ centre + truth["translation"])[..., None])[..., 0]
+    assert float((fitted_centre - true_centre).norm(dim=-1).max()) < 1.0
+    assert np.all(result.fit_rms_mm < 2.0)   # noise-free points; strays within 1.5 cm count
+
+
+def test_shape_offset_absorbs_another_person(builtin_rig):
+    person = HeadNeckModel(reshaped_person(builtin_rig.rig, seed=3, config=PersonConfig()))
+    truth = sequence(person, 8, seed=9)
+    with_shape = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(fit_shape=True, **FAST))
+    without = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(**FAST))
+    assert with_shape.shape_offset.shape == (builtin_rig.num_vertices, 3) and without.shape_offset is None
+    assert joint_error_deg(with_shape, truth) < 0.5 * joint_error_deg(without, truth)
+    offset_model = HeadNeckModel(builtin_rig.rig.__class__(**{**builtin_rig.rig.__dict__,
+                                                              "template": builtin_rig.rig.template
+                                                              + with_shape.shape_offset}))
+    assert vertex_rms_mm(offset_model, with_shape, truth) < 1.0 < vertex_rms_mm(builtin_rig, without, truth)
+
+
+def test_bad_input_names_the_frame(builtin_rig):
+    vertices = np.zeros((3, builtin_rig.num_vertices, 3), np.float32)
+    vertices[2, 10, 1] = np.nan
+    with pytest.raises(InputError, match="frame 2 holds NaN"):
+        fit_meshes(builtin_rig, vertices)
+    with pytest.raises(InputError, match=f"100 vertices per frame, the rig has {builtin_rig.num_vertices}"):
+        fit_meshes(builtin_rig, np.zeros((2, 100, 3)))
+    clouds = [np.random.default_rng(0).normal(size=(500, 3)), np.zeros((50, 3))]
+    with pytest.raises(InputError, match="frame 1 has 50 points, expected at least 100"):
+        fit_scans(builtin_rig, clouds)
+    with pytest.raises(InputError, match=r"frame 0 has shape \[500, 2\]"):
+        fit_scans(builtin_rig, [np.zeros((500, 2))])
