@@ -1,7 +1,7 @@
 """Larynx tracker and normal-map renderer: speed, and accuracy on synthetic sequences per condition.
 
     python benchmarks/bench_tracker.py [--rig /tmp/hack_rig.npz] [--threads 1] [--frames 240] [--seeds 1]
-        [--sections speed,slide,conditions,ablations,scale]
+        [--sections speed,slide,conditions,ablations,scale,framing] [--sizes 256,512] [--px-per-cm 8,12,...]
 
 Sequences (``scene.normal_sequences``): 256x256 at 0.08 cm/px, 30 fps, noise 0.05, 8-bit quantised, swallows
 (40 per minute), speech-like tau motion; per condition head motion (degrees per anatomical axis), the face
@@ -26,12 +26,19 @@ Figures:
   compensated) of the tracker set up as ``python -m motion.track`` sets it up (kernel, window calibration,
   tracker settings and neck model at the scale) given the true scale and given the scale estimated from the
   frames (``motion.track.scale.estimate_scale``, the first 90 frames), the estimate, its error and its time.
+- framing (not among the default sections): one talking-and-moving sequence (``FRAMING_CONDITION``, seed 0)
+  rendered at 8, 12, 16, 22, 30 and 40 px/cm (``FRAMING_PX_PER_CM``) on 256x256 and 512x512 frames centred on
+  the rest larynx point: from the whole head (64 cm across) down to 6.4 cm of neck filling the frame.  Per
+  framing the R^2 (raw / compensated) given the true scale and given the estimate, the estimate's error and
+  time; on 512x512 frames also the whole ``python -m motion.track`` run without ``cm_per_px=`` (its own
+  estimate included, 8-bit frames read from a file) and its time.  A refused estimate prints the error.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -44,6 +51,7 @@ sys.path.insert(0, str(REPO))
 
 from timing import frames_per_second  # noqa: E402
 
+from base.errors import InputError  # noqa: E402
 from data.normals import encode_normals, stored_to_unit  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
 from motion.track import (  # noqa: E402
@@ -84,6 +92,9 @@ CONDITIONS = {
 BASE = {"frames": 240, "noise": 0.05, "quantize_8bit": True, "swallows_per_minute": 40.0}
 SCALE_CONDITIONS = ("talking (facial.csv), 6 deg", "talking (bsw_list.npy), 6 deg")
 SCALE_FACTORS = (0.5, 1.0, 2.0)
+FRAMING_CONDITION = "talking (facial.csv), 6 deg"
+FRAMING_PX_PER_CM = (8, 12, 16, 22, 30, 40)
+FRAMING_SIZES = (256, 512)
 
 
 def speed(rig, kernel, neck, threads: list[int]) -> None:
@@ -235,6 +246,74 @@ def scales(rig, frames: int, seeds: int) -> None:
                       f"{100 * (estimate.cm_per_px / true - 1):+5.1f}%  {elapsed:4.1f} s", flush=True)
 
 
+def cli_run(rig_arg: str | None, seq) -> tuple[float, str]:
+    """(seconds, the printed scale line) of ``python -m motion.track`` in-process on the sequence written as
+    8-bit PNG-encoded values in a .npy, without ``cm_per_px=``, given the larynx's first position (``init_x``,
+    ``init_y``: the search for it is not what is timed)."""
+    import contextlib
+    import io
+
+    from base.cli import compose_config
+    from base.files import save_npy
+    from motion.track import run
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "seq.npy"
+        save_npy(path, np.rint(encode_normals(seq.normals) * 255).astype(np.uint8))
+        x, y = seq.larynx_px[0]
+        args = [f"input={path}", f"out={Path(tmp) / 't.csv'}", "plot=null", "progress=false", f"init_x={x}",
+                f"init_y={y}"]
+        if rig_arg:
+            args.append(f"rig={rig_arg}")
+        printed = io.StringIO()
+        started = time.perf_counter()
+        with contextlib.redirect_stdout(printed):
+            run(compose_config("track", args))
+        elapsed = time.perf_counter() - started
+    line = next((x for x in printed.getvalue().splitlines() if x.startswith("scale:")), "")
+    return elapsed, line
+
+
+def framing(rig, rig_arg: str | None, frames: int, sizes: tuple[int, ...] = FRAMING_SIZES,
+            densities: tuple[int, ...] = FRAMING_PX_PER_CM, cli: tuple[int, ...] = FRAMING_PX_PER_CM) -> None:
+    overrides = CONDITIONS[FRAMING_CONDITION]
+    recording = overrides.get("expressions")
+    if recording and not Path(recording).is_file():
+        print(f"framing sweep skipped: {recording} not found")
+        return
+    print(f"framing sweep: {FRAMING_CONDITION}, seed 0, {frames} frames, noise 0.05, 8-bit, 40 swallows/min; "
+          f"R^2 of tau from the rise (raw / compensated):")
+    print(f"  {'size':>4s} {'px/cm':>5s}  view cm  ceiling  true scale     estimated      estimate   error  "
+          f"score  est. time (CPU s)  motion.track run")
+    for size in sizes:
+        for px_per_cm in densities:
+            true = 1.0 / px_per_cm
+            seq = make_sequence(rig, SequenceConfig(**{**BASE, "frames": frames, **overrides, "cm_per_px": true,
+                                                       "size": size}), seed=0)
+            given = tracked_r2(rig, seq, true)
+            head = (f"  {size:4d} {px_per_cm:5d}  {size * true:7.1f}  {seq.ceiling_r2():7.3f}  "
+                    f"{given[0]:.3f} / {given[1]:.3f}  ")
+            started, cpu = time.perf_counter(), time.process_time()
+            try:
+                estimate = estimate_scale(sample_frames(seq.normals), rig)
+            except InputError as error:
+                print(head + f"refused ({time.perf_counter() - started:.1f} s): {error}", flush=True)
+                continue
+            elapsed, cpu = time.perf_counter() - started, time.process_time() - cpu
+            found = tracked_r2(rig, seq, estimate.cm_per_px)
+            whole = ""
+            if size >= 512 and px_per_cm in cli:
+                try:
+                    seconds, line = cli_run(rig_arg, seq)
+                    whole = f"{seconds:5.1f} s ({line.split(',')[0]})"
+                except InputError as error:
+                    whole = f"refused: {error}"
+            print(head + f"{found[0]:.3f} / {found[1]:.3f}  {estimate.cm_per_px:9.5f}  "
+                  f"{100 * (estimate.cm_per_px / true - 1):+5.1f}%  {estimate.score:5.2f}  {elapsed:5.2f} s "
+                  f"({cpu:.2f} CPU)  {whole}",
+                  flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", default="1", help="thread counts to time, comma separated")
@@ -242,6 +321,11 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=240)
     parser.add_argument("--rig", help="rig file from python -m data.assets (default: the built-in rig)")
     parser.add_argument("--sections", default="speed,slide,conditions,ablations")
+    parser.add_argument("--sizes", default="256,512", help="frame sides of the framing sweep, comma separated")
+    parser.add_argument("--px-per-cm", default=",".join(map(str, FRAMING_PX_PER_CM)),
+                        help="pixel densities of the framing sweep, comma separated")
+    parser.add_argument("--cli-px-per-cm", default=",".join(map(str, FRAMING_PX_PER_CM)),
+                        help="pixel densities at which the framing sweep times the whole motion.track run")
     args = parser.parse_args()
     sections = set(args.sections.split(","))
     torch.set_num_threads(1)
@@ -265,6 +349,9 @@ def main() -> None:
         conditions(rig, kernel, neck, args.frames, args.seeds, "ablations" in sections)
     if "scale" in sections:
         scales(rig, args.frames, args.seeds)
+    if "framing" in sections:
+        framing(rig, args.rig, args.frames, tuple(int(v) for v in args.sizes.split(",")),
+                tuple(int(v) for v in args.px_per_cm.split(",")), tuple(int(v) for v in args.cli_px_per_cm.split(",")))
 
 
 if __name__ == "__main__":

@@ -8,7 +8,8 @@ The capture's pixel scale at the neck (``cm_per_px``) sizes the kernel (70 px at
 ``kernel_size`` is given), the tracker's pixel settings (``TrackerConfig.at_scale``), the window's
 calibration, the neck model and ``px_per_tau``.
 Without ``cm_per_px=`` it is estimated from the first 90 frames (``motion.track.scale``: the rig's neck
-matched at scales 0.005-0.64 cm/px; within 2.1 % on the real rig's talking-and-moving sequences) and
+matched over the part of it the frames show, at scales 0.005-0.64 cm/px, views of 4.8 to 100 cm; see
+``benchmarks/README.md`` for its errors from the whole head to 6.4 cm of neck) and
 printed (``scale: 0.0812 cm/px, estimated ...``); a given ``cm_per_px`` that differs from the frames'
 by more than 15 % is used but warned about (one ``warning:`` line on stderr).
 

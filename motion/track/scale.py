@@ -1,23 +1,40 @@
 """The capture's pixel scale (cm per pixel at the neck) read from its normal maps, when it is not given.
 
-The rig at rest in the default neck view, rendered at ``WORK_CM_PER_PX`` and band-passed like the
-tracker's frames (``motion.track.kernel.bandpass``, its settings scaled to that resolution), gives a
-template of the neck around the larynx point: ``SCALE_TEMPLATE_PX`` (the larynx with the neck's relief
-beside and below it; what the jaw reaches above it is left out).  A frame at an unknown scale c is
-resampled by c / ``WORK_CM_PER_PX`` (to the template's resolution if c is right), band-passed, and matched
-against the template over the whole frame (``cv2.matchTemplate`` TM_CCORR_NORMED); the peak correlation,
-averaged over frames, is largest where c is the capture's scale.  Search: a coarse grid in steps of
-2^(1/4) over the scales in ``SCALE_RANGE_CM_PER_PX`` at which the resampled frame holds the template and
-the frame spans at most ``MAX_VIEW_CM`` (scored on the first ``COARSE_FRAMES`` sampled frames), then steps
-of 2^(1/32) within one coarse step of the best (on every sampled frame: every ``FRAME_STEP``-th of the
-first ``ESTIMATE_FRAMES``), and a parabola through the best three in log scale.
+The rig at rest in the default neck view, rendered at a matching scale (``WORK_CM_PER_PX``) and band-passed like
+the tracker's frames (``motion.track.kernel.bandpass``, its settings scaled to that resolution, the column high-
+pass and the low-pass capped: ``SCALE_COLUMN_HIGHPASS_PX``, ``SCALE_LOWPASS_SIGMA_PX``), gives a template of the
+neck around the larynx point: ``SCALE_TEMPLATE_PX`` (the larynx with the neck's relief beside and below it; what
+the jaw reaches above it is left out). A frame at an unknown scale c is resampled by c / work (to the template's
+resolution if c is right), band-passed, and matched against the template over their overlap
+(:func:`overlap_peak`): the normalised correlation over the part of the template the frame shows, so that a
+frame framed wider than the template (the whole head) holds all of it and a close-up (a neck filling the frame:
+chin, larynx, lower neck) is matched by the part it shows. The peak correlation, averaged over frames, is
+largest where c is the capture's scale. Search: a coarse grid in steps of 2^(1/4) over the scales in
+``SCALE_RANGE_CM_PER_PX`` at which the frame shows between ``MIN_VIEW_CM`` (its short side) and ``MAX_VIEW_CM``
+(its long side), at 0.16 cm/px, on the first ``COARSE_FRAMES`` sampled frames; then steps of 2^(1/32) within
+``FINE_REACH`` of the coarse curve's parabola vertex, on every sampled frame (every ``FRAME_STEP``-th of the
+first ``ESTIMATE_FRAMES``) cut to the template's extent and ``CROP_MARGIN_CM`` around the coarse match, at the
+coarsest matching scale at which the cut spans ``MIN_WORK_PX`` (0.08 cm/px for views under 10 cm); and a
+parabola through the best three in log scale.
+
+Why the frame's borders weigh less (``BORDER_CM``): the band-pass reflects a frame at its edges where the
+template saw the neck beyond; on 6.4 cm of the real rig's neck at rest that read 2.4 % too coarse (+0.6 %
+band-passed with the neck around it), +1.3 % with the borders weighted down (``benchmarks/README.md``).  The
+column high-pass capped at 4.9 cm (the tracker's is 8 cm) for the same reason: close-ups at 30 and 40 px/cm
++2.8 / +4.5 % with 8 cm, +1.4 / +2.8 % with 4.9 cm (3.3 cm: +2.0 / +3.4 %).  The low-pass capped at 0.24 cm
+(the tracker's 0.32): on 90-frame talking sequences at the sweep's twelve framings the real rig's errors span
++0.3 to +2.9 % with 0.32 cm, +0.6 to +1.9 % with 0.24, -0.7 to +2.2 % with 0.16; the built-in rig's -1.3 to
++2.0, -1.8 to +0.8 and -3.1 to -0.4 %.
 
 Why this template: the tracker's own kernel (the larynx's normal perturbation alone) peaks 9-11 % too
 coarse even on frames of the rig at rest (the neck's relief around the larynx correlates with it at a
 slightly wrong scale); the neck's view as the frames show it is exact at rest.  Head motion and the jaw
-move the estimate: on the real rig's talking-and-moving sequences -2.0 to +2.1 % (``benchmarks/README.md``,
-section "Tracker and renderer").  The rig's neck stands for the subject's: a neck wider or narrower than
-the rig's around the larynx reads as a finer or coarser scale.
+move the estimate (``benchmarks/README.md``, section "Tracker and renderer", framing sweep).  The rig's neck
+stands for the subject's: a neck wider or narrower than the rig's around the larynx reads as a finer or
+coarser scale.
+
+When it cannot decide (no scale matches at ``MIN_SCORE``, or a second peak of the coarse curve, two steps or
+more from the best, comes within ``AMBIGUITY`` of it) the error names every scale compared and its score.
 
 :func:`estimate_scale` estimates; :func:`check_scale` compares a given scale with the estimate and words
 the warning when they differ by more than ``DISAGREEMENT``.
@@ -26,7 +43,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -40,45 +57,72 @@ from scene.render import DEFAULT_CM_PER_PX
 # right, y down.  Wider and lower than the larynx kernel: the neck beside and below the larynx holds its shape
 # while the jaw moves (real rig, five talking sequences: 110 x 80 px errs -0.6 to +2.4 %, 70 x 70 px -0.1 to +3.3 %).
 SCALE_TEMPLATE_PX = (-55, 55, -30, 50)
+SCALE_COLUMN_HIGHPASS_PX = 61           # the column high-pass (px at 0.08 cm/px) is capped at 4.9 cm: see the doc
+SCALE_LOWPASS_SIGMA_PX = 3.0            # the low-pass sigma (px at 0.08 cm/px) is capped at 0.24 cm: see the doc
 SCALE_RANGE_CM_PER_PX = (0.005, 0.64)   # the scales searched (a neck 25 to 1,600 px wide)
-WORK_CM_PER_PX = 0.16                  # frames are matched at this scale (0.08 and 0.12: errors within 1 % of
-                                       # these, 2-4 times the time)
-MAX_VIEW_CM = 60.0                     # a frame spanning more than this is taken to be at a finer scale
-ESTIMATE_FRAMES = 90                   # the first frames the estimate looks at (3 s at 30 fps) ...
-FRAME_STEP = 6                         # ... every 6th of them
-COARSE_FRAMES = 3                      # sampled frames the coarse search scores
+WORK_CM_PER_PX = (0.16, 0.08, 0.04)     # matching scales: the coarse search at the first, the fine one at the
+MIN_WORK_PX = 64                        # coarsest at which the region searched spans this many pixels
+MIN_VIEW_CM = 4.8                       # a frame showing less than this (its short side) is not scored
+MAX_VIEW_CM = 100.0                     # a frame spanning more than this is taken to be at a finer scale
+MIN_OVERLAP = 0.75                      # of the frame's or the template's side, whichever is shorter
+BORDER_CM = 1.5                         # a frame's pixels nearer its edge than this weigh less (``border_weight``)
+CROP_MARGIN_CM = 4.0                    # the fine search looks this far around the coarse search's match
+ESTIMATE_FRAMES = 90                    # the first frames the estimate looks at (3 s at 30 fps) ...
+FRAME_STEP = 6                          # ... every 6th of them
+COARSE_FRAMES = 3                       # sampled frames the coarse search scores
 COARSE_STEP = 2.0 ** 0.25
 FINE_STEP = 2.0 ** (1 / 32)
-MIN_SCORE = 0.5                        # below this mean peak correlation the frames do not look like the rig's neck
-                                       # (the real rig's talking sequences: 0.86-0.94 at their scale)
-DISAGREEMENT = 0.15                    # a given scale further than this from the frames' is warned about
+FINE_REACH = 2.0 ** (1 / 8)              # the fine search's reach around the coarse curve's vertex
+MIN_SCORE = 0.5                         # below this mean peak correlation the frames do not look like the rig's neck
+                                        # (the real rig's talking sequences: 0.82-0.94 at their scale)
+AMBIGUITY = 0.03                        # a second coarse peak this close to the best leaves the scale undecided
+                                        # (framing sweep: the best scale leads any other peak by 0.13 or more)
+DISAGREEMENT = 0.15                     # a given scale further than this from the frames' is warned about
 
 
 @dataclass
 class ScaleEstimate:
-    """cm_per_px the estimated scale; score the mean peak correlation there; frames the frames it used."""
+    """cm_per_px the estimated scale; score the mean peak correlation there; frames the frames it used;
+    compared the coarse search's (cm_per_px, mean peak correlation) pairs."""
 
     cm_per_px: float
     score: float
     frames: int
+    compared: list[tuple[float, float]] = field(default_factory=list)
 
 
-def _work_bandpass(config: BandpassConfig | None) -> BandpassConfig:
-    """The band-pass (pixels at 0.08 cm/px) in pixels of ``WORK_CM_PER_PX``."""
-    return (config or BandpassConfig()).at_scale(DEFAULT_CM_PER_PX / WORK_CM_PER_PX)
+def _work_bandpass(config: BandpassConfig | None, work: float) -> BandpassConfig:
+    """The band-pass (pixels at 0.08 cm/px, column high-pass and low-pass capped at ``SCALE_COLUMN_HIGHPASS_PX``
+    and ``SCALE_LOWPASS_SIGMA_PX``) in pixels of ``work`` cm/px."""
+    config = config or BandpassConfig()
+    config = replace(config, column_highpass_px=min(config.column_highpass_px, SCALE_COLUMN_HIGHPASS_PX),
+                     lowpass_sigma_px=min(config.lowpass_sigma_px, SCALE_LOWPASS_SIGMA_PX))
+    return config.at_scale(DEFAULT_CM_PER_PX / work)
 
 
-def scale_template(rig, config: BandpassConfig | None = None) -> np.ndarray:
-    """The band-passed rest view of ``rig`` around the larynx point [h,w,3] at ``WORK_CM_PER_PX``
+def scale_template(rig, config: BandpassConfig | None = None, work: float = WORK_CM_PER_PX[0]) -> np.ndarray:
+    """The band-passed rest view of ``rig`` around the larynx point [h,w,3] at ``work`` cm/px
     (``SCALE_TEMPLATE_PX``); ``config``: the band-pass in pixels at 0.08 cm/px."""
-    factor = DEFAULT_CM_PER_PX / WORK_CM_PER_PX
-    kernel = rig_kernel(rig, WORK_CM_PER_PX, max(5, round(KERNEL_SIZE * factor)), round(CONTEXT_MARGIN * factor))
-    view = bandpass(kernel.context, _work_bandpass(config))
+    factor = DEFAULT_CM_PER_PX / work
+    kernel = rig_kernel(rig, work, max(5, round(KERNEL_SIZE * factor)), round(CONTEXT_MARGIN * factor))
+    view = bandpass(kernel.context, _work_bandpass(config, work))
     cx, cy = (round(o + c) for o, c in zip(kernel.offset, kernel.centre))
     left, right, top, bottom = (round(v * factor) for v in SCALE_TEMPLATE_PX)
     if cy + top < 0 or cx + left < 0 or cy + bottom > view.shape[0] or cx + right > view.shape[1]:
         raise ValueError("SCALE_TEMPLATE_PX reaches beyond the rig kernel's context")
     return np.ascontiguousarray(view[cy + top:cy + bottom, cx + left:cx + right])
+
+
+class Templates(dict):
+    """``scale_template`` of one rig and band-pass per matching scale, made when first asked for."""
+
+    def __init__(self, rig, config: BandpassConfig | None = None):
+        super().__init__()
+        self.rig, self.config = rig, config
+
+    def __missing__(self, work: float) -> np.ndarray:
+        self[work] = scale_template(self.rig, self.config, work)
+        return self[work]
 
 
 def sample_frames(frames) -> list[np.ndarray]:
@@ -92,33 +136,77 @@ def sample_frames(frames) -> list[np.ndarray]:
     return sampled
 
 
-def _valid(cm_per_px: float, shape: tuple[int, ...], template: np.ndarray) -> bool:
-    """Whether a frame of ``shape`` at ``cm_per_px``, resampled to ``WORK_CM_PER_PX``, holds the template and spans
-    at most ``MAX_VIEW_CM``."""
+def _valid(cm_per_px: float, shape: tuple[int, ...]) -> bool:
+    """Whether a frame of ``shape`` at ``cm_per_px`` is scored: its short side shows at least ``MIN_VIEW_CM``,
+    its long side at most ``MAX_VIEW_CM``."""
     h, w = shape[:2]
-    factor = cm_per_px / WORK_CM_PER_PX
     low, high = SCALE_RANGE_CM_PER_PX
-    return (low <= cm_per_px <= high and max(h, w) * cm_per_px <= MAX_VIEW_CM
-            and round(h * factor) >= template.shape[0] and round(w * factor) >= template.shape[1])
+    return low <= cm_per_px <= high and min(h, w) * cm_per_px >= MIN_VIEW_CM and max(h, w) * cm_per_px <= MAX_VIEW_CM
 
 
-def peak_scores(frames: Sequence[np.ndarray], template: np.ndarray, candidates: np.ndarray,
-                config: BandpassConfig | None = None) -> np.ndarray:
-    """The template's peak normalised correlation [F,C] in each frame resampled as if at each candidate scale
-    (cm/px); NaN where the candidate is not searchable (see the module doc)."""
-    config = _work_bandpass(config)
+def _box_sums(table: np.ndarray, y0, y1, x0, x1) -> np.ndarray:
+    return table[y1, x1] - table[y0, x1] - table[y1, x0] + table[y0, x0]
+
+
+def border_weight(shape: tuple[int, ...], reach: float) -> np.ndarray:
+    """[h,w] float32: 1 further than ``reach`` px from the frame's edges, falling linearly to 0 at them (where the
+    band-pass reflects the frame instead of seeing the neck beyond it)."""
+    h, w = shape[:2]
+    rows = np.minimum(np.arange(h) + 0.5, h - 0.5 - np.arange(h))
+    cols = np.minimum(np.arange(w) + 0.5, w - 0.5 - np.arange(w))
+    return np.minimum(1.0, np.minimum(rows[:, None], cols[None, :]) / max(reach, 1e-6)).astype(np.float32)
+
+
+def overlap_peak(image: np.ndarray, template: np.ndarray, weight: np.ndarray) -> tuple[float, int, int]:
+    """(score, row, col) of the template's best placement in a band-passed image [h,w,3] weighted by ``weight``
+    [h,w]: the normalised correlation sum(w f t) / sqrt(sum(w f^2) sum(w t^2)) over the part of the template
+    that overlaps the image, at placements that overlap at least ``MIN_OVERLAP`` of the shorter side in each
+    direction and where the image's band holds at least 5 % of the template's energy there (not background);
+    row, col the template's top-left (may be negative).  A template larger than the image is thus matched by
+    the part of it the image shows."""
+    h, w = image.shape[:2]
+    th, tw = template.shape[:2]
+    py, px = th - math.ceil(MIN_OVERLAP * min(h, th)), tw - math.ceil(MIN_OVERLAP * min(w, tw))
+    weighted = image * weight[..., None]
+    products = cv2.matchTemplate(cv2.copyMakeBorder(weighted, py, py, px, px, cv2.BORDER_CONSTANT, value=0),
+                                 template, cv2.TM_CCORR).astype(np.float64)
+    template_energy = cv2.matchTemplate(cv2.copyMakeBorder(weight, py, py, px, px, cv2.BORDER_CONSTANT, value=0),
+                                        np.einsum("hwc,hwc->hw", template, template), cv2.TM_CCORR).astype(np.float64)
+    rows = np.arange(products.shape[0])[:, None] - py
+    cols = np.arange(products.shape[1])[None, :] - px
+    y0, y1, x0, x1 = np.clip(rows, 0, h), np.clip(rows + th, 0, h), np.clip(cols, 0, w), np.clip(cols + tw, 0, w)
+    image_energy = _box_sums(cv2.integral(np.einsum("hwc,hwc->hw", weighted, image).astype(np.float64)),
+                             y0, y1, x0, x1)
+    scores = np.where(image_energy > 0.05 * template_energy,
+                      products / np.sqrt(np.maximum(image_energy * template_energy, 1e-12)), -1.0)
+    best = int(np.argmax(scores))
+    row, col = divmod(best, scores.shape[1])
+    return float(scores[row, col]), row - py, col - px
+
+
+def peak_scores(frames: Sequence[np.ndarray], template: np.ndarray, candidates: np.ndarray, work: float,
+                config: BandpassConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(scores [F,C], positions [F,C,2]): the template's peak correlation (``overlap_peak``) in each frame
+    resampled from each candidate scale (cm/px) to ``work`` cm/px, NaN where the candidate is not searchable
+    (``_valid``), and the template's larynx point there (x, y) in frame pixels."""
+    config = _work_bandpass(config, work)
     scores = np.full((len(frames), len(candidates)), np.nan)
+    positions = np.full((len(frames), len(candidates), 2), np.nan)
+    left, _, top, _ = (v * DEFAULT_CM_PER_PX / work for v in SCALE_TEMPLATE_PX)
+    weight = None
     for j, cm_per_px in enumerate(candidates):
-        factor = cm_per_px / WORK_CM_PER_PX
+        factor = cm_per_px / work
         for i, frame in enumerate(frames):
-            if not _valid(cm_per_px, frame.shape, template):
+            if not _valid(cm_per_px, frame.shape):
                 continue
             h, w = frame.shape[:2]
-            size = (round(w * factor), round(h * factor))
+            size = (max(1, round(w * factor)), max(1, round(h * factor)))
             image = cv2.resize(frame, size, interpolation=cv2.INTER_AREA if factor < 1 else cv2.INTER_LINEAR)
-            match = cv2.matchTemplate(bandpass(image, config), template, cv2.TM_CCORR_NORMED)
-            scores[i, j] = float(np.nan_to_num(match, nan=-1.0, posinf=-1.0, neginf=-1.0).max())
-    return scores
+            if weight is None or weight.shape != image.shape[:2]:
+                weight = border_weight(image.shape, BORDER_CM / work)
+            scores[i, j], row, col = overlap_peak(bandpass(image, config), template, weight)
+            positions[i, j] = ((col - left) / factor, (row - top) / factor)
+    return scores, positions
 
 
 def _mean_curve(scores: np.ndarray) -> np.ndarray:
@@ -139,47 +227,94 @@ def _refine(candidates: np.ndarray, curve: np.ndarray) -> float:
     return float(candidates[best])
 
 
-def _fine(frames: Sequence[np.ndarray], template: np.ndarray, centre: float, reach: float,
+def _crop(frames: Sequence[np.ndarray], centre: np.ndarray, cm_per_px: float) -> list[np.ndarray]:
+    """The frames cut to the template's extent around ``centre`` (x, y frame pixels, the larynx point the coarse
+    search found at ``cm_per_px``) and ``CROP_MARGIN_CM`` beyond, at scales up to ``FINE_REACH`` finer."""
+    left, right, top, bottom = (v * DEFAULT_CM_PER_PX for v in SCALE_TEMPLATE_PX)
+    reach = FINE_REACH / cm_per_px
+    h, w = frames[0].shape[:2]
+    x0, x1 = (int(np.clip(round(centre[0] + v * reach), 0, w)) for v in (left - CROP_MARGIN_CM, right + CROP_MARGIN_CM))
+    y0, y1 = (int(np.clip(round(centre[1] + v * reach), 0, h)) for v in (top - CROP_MARGIN_CM, bottom + CROP_MARGIN_CM))
+    return [np.ascontiguousarray(frame[y0:y1, x0:x1]) for frame in frames]
+
+
+def _fine(frames: Sequence[np.ndarray], templates: Templates, centre: float, position: np.ndarray,
           config: BandpassConfig | None) -> tuple[float, float]:
-    """(scale, mean peak score) of the fine search within a factor ``reach`` of ``centre``."""
-    steps = int(round(math.log(reach) / math.log(FINE_STEP)))
+    """(scale, mean peak score) of the fine search within a factor ``FINE_REACH`` of ``centre``, on the frames
+    cut around ``position`` (``_crop``), at the coarsest matching scale at which the cut spans ``MIN_WORK_PX``."""
+    steps = int(round(math.log(FINE_REACH) / math.log(FINE_STEP)))
     candidates = centre * FINE_STEP ** np.arange(-steps, steps + 1)
-    curve = _mean_curve(peak_scores(frames, template, candidates, config))
-    if not np.isfinite(curve).any():
+    valid = [_valid(c, frames[0].shape) for c in candidates]
+    if not any(valid):
         return math.nan, math.nan
+    cut = _crop(frames, position, centre)
+    short = min(cut[0].shape[:2]) * candidates[valid].min()
+    work = next((v for v in WORK_CM_PER_PX if short / v >= MIN_WORK_PX), WORK_CM_PER_PX[-1])
+    scores, _ = peak_scores(cut, templates[work], candidates, work, config)
+    # the crop changes nothing but the frames' size: which candidates are searchable follows the whole frame
+    scores[:, ~np.asarray(valid)] = np.nan
+    curve = _mean_curve(scores)
     return _refine(candidates, curve), float(np.nanmax(curve))
 
 
+def _listing(compared: Sequence[tuple[float, float]]) -> str:
+    return ", ".join(f"{c:.4g}: {s:.2f}" for c, s in compared)
+
+
 def estimate_scale(frames: Sequence[np.ndarray], rig, config: BandpassConfig | None = None,
-                   template: np.ndarray | None = None) -> ScaleEstimate:
+                   templates: Templates | None = None) -> ScaleEstimate:
     """The frames' pixel scale (cm/px at the neck) from their match with the rig's neck (see the module doc).
 
     Args:
         frames: decoded normal maps [H,W,3] (``sample_frames`` of a sequence's first frames).
         rig: a ``models.rig.HeadNeckModel``, the neck the frames are compared with.
         config: the band-pass, pixels at 0.08 cm/px (default ``BandpassConfig()``).
-        template: ``scale_template(rig, config)``, when already made.
+        templates: ``Templates(rig, config)``, when already made.
     Returns:
         the estimate; InputError when no scale in ``SCALE_RANGE_CM_PER_PX`` fits the frames or none
-        matches the rig's neck (peak correlation below ``MIN_SCORE``).
+        matches the rig's neck (peak correlation below ``MIN_SCORE``), naming the scales compared and their
+        scores.
     """
     if not len(frames):
         raise InputError("no frames to estimate the pixel scale from")
-    template = scale_template(rig, config) if template is None else template
+    templates = Templates(rig, config) if templates is None else templates
     low, high = SCALE_RANGE_CM_PER_PX
     steps = np.arange(math.floor(math.log(low / DEFAULT_CM_PER_PX, COARSE_STEP)),
                       math.ceil(math.log(high / DEFAULT_CM_PER_PX, COARSE_STEP)) + 1)
     coarse = DEFAULT_CM_PER_PX * COARSE_STEP ** steps
-    coarse = coarse[[_valid(c, frames[0].shape, template) for c in coarse]]
+    coarse = coarse[[_valid(c, frames[0].shape) for c in coarse]]
     h, w = frames[0].shape[:2]
     if not len(coarse):
-        raise InputError(f"{w}x{h} frames are too small to estimate their pixel scale; give cm_per_px=")
-    curve = _mean_curve(peak_scores(frames[:COARSE_FRAMES], template, coarse, config))
-    scale, score = _fine(frames, template, float(coarse[int(np.nanargmax(curve))]), COARSE_STEP, config)
+        raise InputError(f"{w}x{h} frames are too small to estimate their pixel scale (they would show at least "
+                         f"{MIN_VIEW_CM:g} cm at {high:g} cm/px); give cm_per_px=")
+    work = WORK_CM_PER_PX[0]
+    scores, positions = peak_scores(frames[:COARSE_FRAMES], templates[work], coarse, work, config)
+    curve = _mean_curve(scores)
+    compared = [(float(c), float(s)) for c, s in zip(coarse, curve)]
+    best = int(np.nanargmax(curve))
+    scale, score = _fine(frames, templates, _refine(coarse, curve), np.nanmedian(positions[:, best], axis=0), config)
     if not np.isfinite(score) or score < MIN_SCORE:
-        raise InputError(f"the frames do not match the rig's neck at any scale (best correlation {score:.2f}, "
-                         f"expected at least {MIN_SCORE}); give cm_per_px= (the capture's pixel scale at the neck)")
-    return ScaleEstimate(scale, score, len(frames))
+        raise InputError(f"the frames do not match the rig's neck at any scale (best correlation {score:.2f} near "
+                         f"{coarse[best]:.4g} cm/px, expected at least {MIN_SCORE}; mean peak correlation at each "
+                         f"scale compared, cm/px: {_listing(compared)}); give cm_per_px= (the capture's pixel scale "
+                         f"at the neck)")
+    rival = _rival(curve, best)
+    if rival is not None:
+        raise InputError(f"the frames match the rig's neck about as well at {coarse[rival]:.4g} cm/px as at "
+                         f"{coarse[best]:.4g} (mean peak correlation {curve[rival]:.2f} and {curve[best]:.2f}; mean "
+                         f"peak correlation at each scale compared, cm/px: {_listing(compared)}); give cm_per_px= "
+                         f"(the capture's pixel scale at the neck)")
+    return ScaleEstimate(scale, score, len(frames), compared)
+
+
+def _rival(curve: np.ndarray, best: int) -> int | None:
+    """The index of the coarse curve's best local maximum two steps or more from ``best`` scoring within
+    ``AMBIGUITY`` of it, else None."""
+    values = np.where(np.isfinite(curve), curve, -np.inf)
+    peaks = [i for i in range(len(values)) if abs(i - best) >= 2 and np.isfinite(values[i])
+             and (i == 0 or values[i] > values[i - 1]) and (i == len(values) - 1 or values[i] > values[i + 1])]
+    rival = max(peaks, key=lambda i: values[i], default=None)
+    return rival if rival is not None and values[rival] >= values[best] - AMBIGUITY else None
 
 
 def check_scale(frames: Sequence[np.ndarray], rig, cm_per_px: float, config: BandpassConfig | None = None,
