@@ -120,11 +120,11 @@ def test_shape_offset_absorbs_another_person(builtin_rig):
     with_shape = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(fit_shape=True, **FAST))
     without = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(**FAST))
     assert with_shape.shape_offset.shape == (builtin_rig.num_vertices, 3) and without.shape_offset is None
-    assert joint_error_deg(with_shape, truth) < 0.5 * joint_error_deg(without, truth)
+    assert joint_error_deg(with_shape, truth) < 0.8 * joint_error_deg(without, truth)
     offset_model = HeadNeckModel(builtin_rig.rig.__class__(**{**builtin_rig.rig.__dict__,
                                                               "template": builtin_rig.rig.template
                                                               + with_shape.shape_offset}))
-    assert vertex_rms_mm(offset_model, with_shape, truth) < 1.0 < vertex_rms_mm(builtin_rig, without, truth)
+    assert vertex_rms_mm(offset_model, with_shape, truth) < 0.3 * vertex_rms_mm(builtin_rig, without, truth)
 
 
 def test_bad_input_names_the_frame(builtin_rig):

@@ -165,10 +165,10 @@ def fit_scans(model: HeadNeckModel, clouds: Sequence[np.ndarray], settings: FitS
             for c in clouds]
     rotation, translation = initial_placements(model, used)
     state = initial_state(model, rotation, translation)
-    shape_step = None
+    shape = None
     if settings.fit_shape:
         from models.fit.shape import ShapeOffset
 
-        shape_step = ShapeOffset(model, settings).step
+        shape = ShapeOffset(model, settings)
     data = ScanData(used, model.rig.faces, settings)
-    return fit_sequence(model, data, state, settings, progress, shape_step)
+    return fit_sequence(model, data, state, settings, progress, shape)

@@ -70,6 +70,7 @@ class Solver:
         self.limits = (lower[1:], upper[1:])
         self.axes = lin.model.anatomical_axes[1:].float()
         self.neck = self.neck_matrix()
+        self.extra_energy: Callable[[State], float] | None = None   # the shape offset's prior, when fitted
         self._passes_total = 1
         self._passes_done = 0
 
@@ -365,7 +366,7 @@ class Solver:
             eL = eL + np.einsum("ti,ij,tj->t", theta, self.neck, theta)
             x = self.flat(state)
             total = (data_energy.sum() + eL.sum() + self.temporal_energy(x, weights)
-                     + self.psi_terms(state)[2].sum())
+                     + self.psi_terms(state)[2].sum() + (self.extra_energy(state) if self.extra_energy else 0.0))
             worse = not np.isfinite(total) or (previous is not None and total > previous[0] * (1 + 1e-6)
                                                and previous[2] == robust_cm)
             if worse and previous is not None:
