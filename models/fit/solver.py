@@ -129,7 +129,11 @@ class Solver:
                 w = weights * geman_mcclure(squared, robust_cm) * inv_noise2   # [b,n]
             total = weights.sum(1).clamp_min(1e-9)
             rms[index] = (((weights * squared).sum(1) / total).sqrt()).double().numpy()
-            energy[index] = (w * squared).sum(1).double().numpy()
+            if getattr(self.data, "robust_inside", False):
+                energy[index] = (w * squared).sum(1).double().numpy()
+            else:   # Geman-McClure's rho, r^2 s^2 / (r^2 + s^2), whose gradient the IRLS weights give
+                rho_gm = squared * robust_cm**2 / (robust_cm**2 + squared)
+                energy[index] = (weights * inv_noise2 * rho_gm).sum(1).double().numpy()
             # The information-weighted residual A (q - y): A = w I (meshes) or w (n n^T + share I) (scans).
             if normals is None:
                 rho = w[..., None] * diff
@@ -353,6 +357,7 @@ class Solver:
         weights = self.temporal_weights()
         started = time.perf_counter()
         previous = None
+        reverted = False
         k = 0
         attempts = 0
         while k < iterations and attempts < 3 * iterations:
@@ -372,8 +377,11 @@ class Solver:
             if worse and previous is not None:
                 state = previous[1]          # the step made it worse: back, more damping, and again
                 self.damping *= 10
+                reverted = True
                 continue
-            self.damping = max(self.damping / 3, 1e-7)
+            if not reverted:                 # an accepted step (not the re-evaluation after a rejected one)
+                self.damping = max(self.damping / 3, 1e-7)
+            reverted = False
             self.data_hessian = H.copy()
             H += HL
             g += gL + self.temporal_gradient(x, weights)
