@@ -4,7 +4,7 @@
     python infer.py expressions=take.csv [out_dir=out/]
     python infer.py expressions=takes/ workers=2       # every take in a folder, one subfolder each
     python infer.py expressions=take.csv checkpoint=runs/larynx_transformer/<run>/checkpoints/last.pt \\
-        head2neck=none swallow_at=[2.0,7.5] meshes=true export=[glb,mp4,html,fbx] [rig=hack_rig.npz]
+        head2neck=none swallow_at=[2.0,7.5] meshes=true export=[glb,mp4,html,fbx,usd] [rig=hack_rig.npz]
     python infer.py expressions=clip.mp4 [mirror=true]  # any face video (pip install ".[video]")
     python infer.py expressions=take.csv audio=take.mov # the voice's pitch moves the larynx too
 
@@ -30,7 +30,8 @@ and the exporters read), ``params.csv`` (a row per frame), ``plot.png`` (tau and
 the joints' anatomical angles), ``meshes/frame_00000.ply ...`` with ``meshes=true``, ``anim.glb``
 (``scene.gltf``: Blender, Unity, three.js) and ``preview.mp4`` (``scene.preview``) with
 ``export=[glb,mp4]``, ``viewer.html`` (``scene.viewer``) and ``anim.fbx`` (``scene.fbx``, through Blender)
-with ``export=[html,fbx]``, ``face_frames.csv`` for a video.  A folder of takes gives one subfolder per
+with ``export=[html,fbx]``, ``anim.usdc`` (``scene.usd``: UsdSkel; ``usd_format=usda|usdz``, ``usd_units=cm|m``)
+with ``export=[usd]``, ``face_frames.csv`` for a video.  A folder of takes gives one subfolder per
 take, a summary table (``summary.csv``), and goes on past a take that fails, naming its reason.
 """
 from __future__ import annotations

@@ -11,6 +11,7 @@ import csv
 import io
 import os
 import shutil
+import socket
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -18,6 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from base.errors import InputError, require_file
+
+STAGING_SUFFIX = ".partial"   # a folder being written by atomic_folder
 
 
 @contextlib.contextmanager
@@ -121,13 +124,48 @@ def require_new_folder(out_dir: Path) -> None:
         raise InputError(f"out_dir={out_dir}: already exists and is not an empty folder; give a new one")
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def stale_staging(out_dir: Path) -> list[Path]:
+    """The staging folders of ``out_dir`` (``.<name>.<host>-<pid>.<random>.partial``) left by a run on this
+    machine whose process is gone (killed: SIGKILL, OOM, power loss), which no ``finally`` removed.  A live
+    process's, another machine's (shared storage: its pid means nothing here) and older unnamed ones are not."""
+    prefix, host = f".{out_dir.name}.", socket.gethostname()
+    found = []
+    if out_dir.parent.is_dir():
+        for path in out_dir.parent.iterdir():
+            name = path.name
+            if not (name.startswith(prefix) and name.endswith(STAGING_SUFFIX)) or not path.is_dir():
+                continue
+            owner = name[len(prefix):-len(STAGING_SUFFIX)].rpartition(".")[0]   # mkdtemp's part has no "."
+            who, _, pid = owner.rpartition("-")
+            if who == host and pid.isdigit() and not _alive(int(pid)):
+                found.append(path)
+    return sorted(found)
+
+
 @contextlib.contextmanager
-def atomic_folder(out_dir: Path) -> Iterator[Path]:
+def atomic_folder(out_dir: Path, announce=None) -> Iterator[Path]:
     """A staging folder beside ``out_dir`` (absent or empty), renamed to it with a normal folder's mode when
-    the block succeeds and removed otherwise: :func:`atomic_path` for a folder."""
+    the block succeeds and removed otherwise: :func:`atomic_path` for a folder.  The staging folders an
+    earlier, killed run left for the same ``out_dir`` (:func:`stale_staging`) are removed first, each named
+    through ``announce``."""
     require_new_folder(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
+    for stale in stale_staging(out_dir):
+        shutil.rmtree(stale, ignore_errors=True)
+        if announce is not None:
+            announce(f"{out_dir}: removed {stale.name}, the unfinished output of a run that was killed")
+    owner = f"{socket.gethostname()}-{os.getpid()}"
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.{owner}.", suffix=STAGING_SUFFIX, dir=out_dir.parent))
     try:
         yield staging
         if out_dir.is_dir():

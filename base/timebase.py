@@ -124,3 +124,66 @@ def time_axis(table: CsvTable, fps: float | None, timecode_fps: float | None = N
             raise InputError(f"{path}: one row only; give {fps_key}=...")
         fps = estimate_fps(time)
     return time, float(fps)
+
+
+# The gap rule (docs/conventions.md, "Gaps"): recorded frames more than GAP_SECONDS apart are a gap.  The grid
+# points inside a gap repeat the last grid point before it (every value held, the larynx model's tau too), and
+# the frames after it start afresh (a recurrent model restarts its state there).  Causal: a point in a gap
+# needs nothing after it, so a live stream pays nothing for a gap when the frame after it arrives.  Shared by
+# infer.py (motion.pipeline.animate) and the live receiver (motion.live.stream).  0.25 s: a few lost datagrams
+# (interpolated over, at most 8 frames at 30 fps run when the next frame arrives) against a lost face.
+GAP_SECONDS = 0.25
+GRID_TOLERANCE = 1e-4  # frames: stamps printed to ~1e-9 s land on the grid within it
+
+
+def last_grid_index(t: float, fps: float) -> int:
+    """The last point ``k`` of the grid ``k / fps`` at or before ``t`` (s), within :data:`GRID_TOLERANCE`."""
+    return int(np.floor(t * fps + GRID_TOLERANCE))
+
+
+def first_grid_index(t: float, fps: float) -> int:
+    """The first point ``k`` of the grid ``k / fps`` at or after ``t`` (s), within :data:`GRID_TOLERANCE`."""
+    return int(np.ceil(t * fps - GRID_TOLERANCE))
+
+
+def grid_segments(time: np.ndarray, fps: float, gap: float = GAP_SECONDS) -> tuple[np.ndarray, np.ndarray]:
+    """The gap rule on :func:`resample_uniform`'s grid from ``time[0]``: (segment [T'] int, the index of the
+    run of frames no more than ``gap`` apart that each grid point belongs to; held [T'] bool, the points
+    inside a gap, which repeat the point before them)."""
+    time = np.asarray(time, dtype=np.float64) - float(time[0])
+    count = last_grid_index(float(time[-1]), fps) + 1
+    segment = np.zeros(count, dtype=np.int64)
+    held = np.zeros(count, dtype=bool)
+    for s, k in enumerate(np.flatnonzero(np.diff(time) > gap) + 1, start=1):
+        start = max(last_grid_index(float(time[k - 1]), fps) + 1, 0)  # first point after the earlier frame
+        resume = first_grid_index(float(time[k]), fps)
+        held[start:resume] = True
+        segment[start:] = s
+    return segment, held
+
+
+def fill_held(values: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """``values`` [T, ...] with every ``held`` point replaced by the last point before it that is not held."""
+    source = np.where(held, 0, np.arange(len(held)))
+    return np.asarray(values)[np.maximum.accumulate(source)]
+
+
+def resample_held(time: np.ndarray, values: np.ndarray, fps: float,
+                  gap: float = GAP_SECONDS) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`resample_uniform` under the gap rule (:func:`grid_segments`): each run of frames interpolated on
+    its own, the points inside a gap held."""
+    time = np.asarray(time, dtype=np.float64)
+    values = np.asarray(values)
+    segment, held = grid_segments(time, fps, gap)
+    grid = time[0] + np.arange(len(segment)) / fps
+    flat = values.reshape(len(time), -1)
+    out = np.zeros((len(grid), flat.shape[1]), dtype=np.float64)
+    bounds = np.concatenate([[0], np.flatnonzero(np.diff(time) > gap) + 1, [len(time)]])
+    for s in range(len(bounds) - 1):
+        a, b = bounds[s], bounds[s + 1]
+        points = (segment == s) & ~held
+        out[points] = np.stack([np.interp(grid[points], time[a:b], flat[a:b, k]) for k in range(flat.shape[1])],
+                               axis=1)
+    out = fill_held(out, held)
+    dtype = values.dtype if values.dtype.kind == "f" else np.float64
+    return grid, out.reshape((len(grid),) + values.shape[1:]).astype(dtype)

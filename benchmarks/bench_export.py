@@ -1,7 +1,7 @@
-"""GLB, HTML and FBX export time and preview-video speed.
+"""GLB, HTML, FBX and USD export time and preview-video speed.
 
     python benchmarks/bench_export.py [--rig rig.npz] [--second-rig other.npz] [--seconds 10]
-        [--export-seconds 60] [--docs]
+        [--export-seconds 60] [--docs] [--usd-only]
 
 On a synthetic 30 fps clip (nods, turns and tilts at every joint, speech-like mouth shapes, a sliding
 larynx): the time to build and write the GLB (and to check it against the rig at every frame), its
@@ -10,13 +10,21 @@ through ``scene.preview.write_preview``) at 256x256 and 512x512 for one characte
 by side (the second character: ``--second-rig``, else the same rig again).  Real time is 30 frames/s.
 Then the time and size of ``viewer.html`` (``scene.viewer``) and ``anim.fbx`` (``scene.fbx``, through
 Blender; skipped, saying so, without it) for a clip of ``--export-seconds`` (the issue's bound: a minute
-in under 30 s each).
+in under 30 s each).  USD (``scene.usd``): the time and size of ``anim.usdc`` and ``anim.usdz`` for the
+``--export-seconds`` clip (the issue's bound: a minute in under 10 s on the built-in rig), then on a
+300-frame clip with weights outside [0, 1] (jawOpen -0.2 .. 1.2, eta up to 1.25) ``UsdSkel.BakeSkinning``'s
+mesh against the rig at every frame, USD's validators, and, where ``$HACKNECK_BPY_PYTHON`` names a Python
+with the ``bpy`` wheel, Blender's USD importer at three frames (tests/blender_usd_reader.py);
+``--usd-only`` runs just these.
 ``--docs`` also writes ``docs/preview_human.png`` (frame 2.0 s of the clip, three-quarter view, 256);
 ``--docs-only`` writes just that.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -34,8 +42,9 @@ from base.files import atomic_path  # noqa: E402
 from data.params import AnimationParams, rig_checksum  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
 from scene.fbx import BlenderMissing, export_fbx  # noqa: E402
-from scene.gltf import export_glb  # noqa: E402
+from scene.gltf import export_glb, rig_vertices  # noqa: E402
 from scene.preview import Panel, preview_image, write_preview  # noqa: E402
+from scene.usd import baked_points, export_usd, time_codes, validation_errors  # noqa: E402
 from scene.viewer import build_viewer  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -74,6 +83,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--docs", action="store_true", help="write docs/preview_human.png")
     parser.add_argument("--docs-only", action="store_true", help="write docs/preview_human.png, no timing")
+    parser.add_argument("--usd-only", action="store_true", help="only the USD figures")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -81,6 +91,9 @@ def main() -> None:
     params = demo_clip(rig, args.seconds)
     if args.docs_only:
         write_docs_frame(rig, params)
+        return
+    if args.usd_only:
+        usd_figures(rig, args.export_seconds)
         return
     name = args.rig or "built-in rig"
     print(f"{name}: {rig.num_vertices} vertices, clip {len(params)} frames at {params.fps:g} fps, "
@@ -114,6 +127,7 @@ def main() -> None:
             print(f"preview {label}: {wall:.1f} frames/s wall ({wall / params.fps:.2f}x real time at "
                   f"{params.fps:g} fps), {cpu:.1f} frames per CPU second")
     export_timing(rig, demo_clip(rig, args.export_seconds))
+    usd_figures(rig, args.export_seconds)
     if args.docs:
         write_docs_frame(rig, params)
 
@@ -131,6 +145,44 @@ def export_timing(rig: HeadNeckModel, params: AnimationParams) -> None:
             return
         print(f"FBX through Blender, {len(params)} frames: {fbx.seconds:.1f} s, "
               f"{fbx.path.stat().st_size / 1e6:.1f} MB")
+
+
+def usd_figures(rig: HeadNeckModel, export_seconds: float, check_frames: int = 300) -> None:
+    """USD export time and size, then USD's skinning, validators and Blender's importer against the rig."""
+    clip = demo_clip(rig, export_seconds)
+    with tempfile.TemporaryDirectory() as folder:
+        for fmt in ("usdc", "usdz"):
+            report = export_usd(clip, rig, Path(folder) / f"anim.{fmt}")
+            print(f"USD ({fmt}), {len(clip)} frames: {report.seconds:.1f} s, {report.bytes / 1e6:.1f} MB "
+                  f"({report.larynx_targets} larynx targets, interpolation bound {report.larynx_error_cm:.4f} cm)")
+        params = demo_clip(rig, check_frames / 30.0)
+        psi = params.psi.copy()
+        psi[:, rig.expression_names.index("jawOpen")] = 0.5 + 0.7 * np.sin(2 * np.pi * 0.4 * params.time)
+        params = dataclasses.replace(params, psi=psi, eta=1.0 + 0.25 * np.sin(2 * np.pi * 0.13 * params.time))
+        path = Path(folder) / "check.usdc"
+        report = export_usd(params, rig, path, check=True)
+        started = time.perf_counter()
+        worst = 0.0
+        for start in range(0, len(params), 50):
+            frames = np.arange(start, min(start + 50, len(params)))
+            baked = baked_points(path, time_codes(params)[frames])
+            worst = max(worst, float(np.linalg.norm(baked - rig_vertices(rig, params, frames), axis=-1).max()))
+        print(f"USD check, {len(params)} frames (jawOpen -0.2 .. 1.2, eta up to 1.25): UsdSkel.BakeSkinning vs the "
+              f"rig max {worst:.4f} cm at every frame ({time.perf_counter() - started:.1f} s); the stored arrays "
+              f"{report.max_error_cm:.4f} cm; larynx bound {report.larynx_error_cm:.4f} cm "
+              f"({report.larynx_targets} targets); validators: {len(validation_errors(path))} errors")
+        bpy_python = os.environ.get("HACKNECK_BPY_PYTHON")
+        if not bpy_python:
+            print("Blender's USD importer: skipped (HACKNECK_BPY_PYTHON not set)")
+            return
+        jaw = psi[:, rig.expression_names.index("jawOpen")]
+        frames = [int(len(params) * f) for f in (0.1, 0.5, 0.9)] + [int(np.argmax(jaw)), int(np.argmin(jaw))]
+        subprocess.run([bpy_python, str(REPO / "tests" / "blender_usd_reader.py"), str(path),
+                        str(Path(folder) / "b.npz"), *map(str, frames)], check=True, capture_output=True)
+        blender = np.load(Path(folder) / "b.npz")["vertices"]
+        errors = np.linalg.norm(blender - rig_vertices(rig, params, frames), axis=-1).max(axis=1)
+        print("Blender's USD importer (frame = time code), max error per frame: "
+              + ", ".join(f"frame {f} (jawOpen {jaw[f]:+.2f}) {e:.4f} cm" for f, e in zip(frames, errors)))
 
 
 def write_docs_frame(rig: HeadNeckModel, params: AnimationParams) -> None:

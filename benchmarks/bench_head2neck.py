@@ -2,7 +2,9 @@
 shifted prior, and optionally a default training run.
 
     python benchmarks/bench_head2neck.py [--checkpoint last.pt] [--frames 65536] [--threads 2] [--rig hack_rig.npz]
-                                         [--accuracy] [--train] [--styles] [--calibration]
+                                         [--accuracy] [--train] [--styles] [--calibration [N ...]]
+                                         [--drift [SEED ...] [--drift-share 0.3] [--drift-deg 3]] [--fixed]
+                                         [--overrides KEY=VALUE ...] [--motion [SEED ...]]
 
 Inference: ``models.head2neck.predict_theta`` (the 2x512 MLP, then the exact correction with its at most three
 Gauss-Newton steps) on head orientations of the in-vivo prior, in frames per second (target >= 50,000 with 2
@@ -21,8 +23,13 @@ flexion, extension, lateral) of the prior's two styles, ``data.prior.style=inviv
 axial shares of the shipped ``default`` and ``hack`` models on a head turn; then the mean joint error of both
 shipped models, the uniform and the in-vivo split on a HACK-style stand-in (``tests/hack_standin.py``: the
 heads of the stand-in recording, solved per frame with E_sim, E_rot and half the axial rotation at C1-C2).
-``--calibration``: trains ``data=theta_seq`` on the first N frames of a HACK-style stand-in recording
-(seeds 0-2 of the stand-in, 1500 frames) and scores each run on a held-out session (seed 3).
+``--calibration``: the default ``data=theta_seq`` calibration on the first N frames of a HACK-style stand-in
+recording (seeds 0-2 of the stand-in, 1500 frames), each run scored on a held-out session (seed 3).
+``--drift`` (issue 58): the default calibration on the first half of a stand-in whose split drifts independently
+of the head (:func:`drifting_standin`), scored on its second half beside both presets and the nearest-neighbour
+bound (:func:`nearest_neighbour`).  ``--fixed``: also ``data.calibrate=false`` (the files alone, 2000 steps),
+the advice before issue 58; ``--overrides``: settings of the default runs.  ``--motion``: the head's recent
+motion (:func:`head_motion`) as extra input of the calibration's candidates, with and without.
 On a CPU shared with other jobs, OpenMP's busy-waiting threads slow multi-threaded torch down several times;
 this script sets ``OMP_WAIT_POLICY=PASSIVE`` (unless already set) before importing torch, which removes that.
 """
@@ -223,41 +230,194 @@ def errors_of(models: dict, rig, truth: torch.Tensor, head: torch.Tensor) -> tup
 
 
 CALIBRATION_FRAMES = (50, 150, 300, 500, 1500)
-CALIBRATION_PRIOR_WEIGHTS = (0.0, 0.5)
 
 
-def calibration() -> None:
-    """Error on a held-out session (seed 3) of ``data=theta_seq`` runs on the first N frames of a recording."""
+def calibration(frames_list: list[int], fixed: bool, overrides: list[str]) -> None:
+    """Error on a held-out session (seed 3) of the default ``data=theta_seq`` calibration on the first N frames
+    of a HACK-style recording (seeds 0-2, 1500 frames); ``fixed``: also the files alone from scratch
+    (``data.calibrate=false``, 2000 steps: the advice before issue 58)."""
     from hack_standin import hack_standin
 
+    rig = HeadNeckModel.builtin()
+    recording = torch.cat([hack_standin(rig, seed) for seed in (0, 1, 2)])
+    held_out = hack_standin(rig, 3)
+    print(f"calibration: data=theta_seq on the first N of {len(recording)} frames, scored on {len(held_out)} "
+          f"held-out frames (mean joint error, deg); preset hack {preset_error('hack', rig, held_out):.3f}, "
+          f"default {preset_error('default', rig, held_out):.3f}")
+    for frames in frames_list:
+        final, wall = run_theta_seq(rig, recording[:frames], held_out, overrides)
+        line = f"{frames:6d} frames: default calibration {final['joint_err_deg']:.3f} ({wall:.0f} s)"
+        if fixed:
+            final, wall = run_theta_seq(rig, recording[:frames], held_out, ["data.calibrate=false"])
+            line += f"; files alone, 2000 steps {final['joint_err_deg']:.3f} ({wall:.0f} s)"
+        print(line, flush=True)
+
+
+# ----------------------------------------------------------------------------- drifting stand-in (issue 58)
+
+DRIFT_SHARE, DRIFT_DEG, DRIFT_SECONDS, DRIFT_FPS = 0.3, 3.0, 1.5, 30.0
+
+
+def slow_latent(frames: int, seconds: float, fps: float, rng: np.random.Generator) -> np.ndarray:
+    """A slow zero-mean latent of unit standard deviation: white noise smoothed by a Gaussian of ``seconds``."""
+    width = int(round(seconds * fps))
+    kernel = np.exp(-0.5 * (np.arange(-4 * width, 4 * width + 1) / width) ** 2)
+    smooth = np.convolve(rng.normal(size=frames + 8 * width), kernel / kernel.sum(), "valid")[:frames]
+    return (smooth - smooth.mean()) / smooth.std()
+
+
+def drifting_standin(rig, seed: int = 0, share: float = DRIFT_SHARE, drift_deg: float = DRIFT_DEG,
+                     seconds: float = DRIFT_SECONDS) -> torch.Tensor:
+    """Anatomical theta [500,8,3] that is not a function of head orientation, as in a HACK fit (issue 58).
+
+    The heads of ``standin_recording(seed)`` solved in HACK's style with ``share`` of the axial rotation at
+    C1-C2 (``tests/hack_standin.py``; the `hack` preset learnt 0.5), replayed as four passes through the
+    session at a quarter of its rate (frames 0, 4, 8, ...; then 2, 6, ...; 1, 5, ...; 3, 7, ...), so that each
+    half goes through it twice and the second half revisits the first half's orientations, as a user repeats
+    turns and nods;
+    then a slow latent of its own (``seconds`` smoothing, 30 fps) turns C1-C2 by ``drift_deg`` (standard
+    deviation) with C6-C7 .. C2-C3 counter-rotating by a fifth each, and a second latent moves flexion between
+    O-C1 and the same lower levels (half the size); the exact correction then restores each frame's head.
+    Independent of the head, so nothing that reads the head alone can predict it."""
+    from hack_standin import hack_standin
+
+    from base.rotations import axis_angle_to_euler, euler_to_axis_angle
+    from models.head2neck import correct_to_head
+
+    solved = hack_standin(rig, seed, share)
+    solved = torch.cat([solved[offset::4] for offset in (0, 2, 1, 3)])
+    rng = np.random.default_rng(1000 + seed)
+    axial = np.radians(drift_deg) * slow_latent(len(solved), seconds, DRIFT_FPS, rng)
+    sagittal = np.radians(drift_deg / 2) * slow_latent(len(solved), seconds * 4 / 3, DRIFT_FPS, rng)
+    euler = axis_angle_to_euler(solved.double()).numpy()
+    euler[:, 6, 1] += axial
+    euler[:, 1:6, 1] -= axial[:, None] / 5
+    euler[:, 7, 0] += sagittal
+    euler[:, 1:6, 0] -= sagittal[:, None] / 5
+    drifted = euler_to_axis_angle(torch.tensor(euler)).float()
+    return correct_to_head(drifted, head_rotations(rig, solved), rig)
+
+
+def joint_error_deg(theta: torch.Tensor, truth: torch.Tensor) -> float:
+    from base.rotations import axis_angle_to_matrix, relative_angle
+
+    return float(torch.rad2deg(relative_angle(axis_angle_to_matrix(theta), axis_angle_to_matrix(truth))).mean())
+
+
+def nearest_neighbour(calibration: torch.Tensor, test: torch.Tensor, rig) -> float:
+    """The nearest-neighbour bound: each test frame takes the theta of the calibration frame whose head points
+    nearest to its own (angle between head orientations), corrected to its head; mean joint error (deg)."""
+    from base.rotations import relative_angle
+    from models.head2neck import correct_to_head
+
+    known, wanted = head_rotations(rig, calibration), head_rotations(rig, test)
+    nearest = torch.stack([relative_angle(h[None], known).argmin() for h in wanted])
+    return joint_error_deg(correct_to_head(calibration[nearest], wanted, rig), test)
+
+
+def run_theta_seq(rig, calibration: torch.Tensor, test: torch.Tensor, overrides: list[str]) -> tuple[dict, float]:
+    """``python train.py task=head2neck data=theta_seq`` on a folder of two files (calibration frames, test
+    frames; the test file held out), bone frames of the built-in rig: (eval.json, wall seconds)."""
     from base.cli import compose_config
     from data.splits import split_by_file
     from tasks import loop
 
-    rig = HeadNeckModel.builtin()
-    recording = torch.cat([rig.from_anatomical(hack_standin(rig, seed)) for seed in (0, 1, 2)]).numpy()
-    held_out = rig.from_anatomical(hack_standin(rig, 3)).numpy()
     split_seed = next(s for s in range(100) if split_by_file(["a", "b"], 0.5, s)[1] == ["b"])
-    print(f"calibration: data=theta_seq on the first N of {len(recording)} frames, scored on {len(held_out)} "
-          f"held-out frames (mean joint error, deg)")
-    print(f"{'frames':>8s}" + "".join(f"{'prior_weight ' + str(w):>18s}" for w in CALIBRATION_PRIOR_WEIGHTS)
-          + f"{'seconds':>10s}")
-    for frames in CALIBRATION_FRAMES:
-        cells, seconds = [], 0.0
-        for weight in CALIBRATION_PRIOR_WEIGHTS:
-            with tempfile.TemporaryDirectory() as folder:
-                folder = Path(folder)
-                (folder / "data").mkdir()
-                np.save(folder / "data" / "a.npy", recording[:frames])
-                np.save(folder / "data" / "b.npy", held_out)
-                cfg = compose_config("train", ["task=head2neck", "data=theta_seq", f"data.path={folder / 'data'}",
-                                               "data.val_fraction=0.5", f"data.split_seed={split_seed}",
-                                               f"data.prior_weight={weight}", "trainer.progress=false"])
-                start = time.perf_counter()
-                final = loop.fit(cfg, folder / "run")
-                seconds += time.perf_counter() - start
-            cells.append(final["joint_err_deg"])
-        print(f"{frames:8d}" + "".join(f"{c:18.2f}" for c in cells) + f"{seconds:10.0f}", flush=True)
+    with tempfile.TemporaryDirectory() as folder:
+        folder = Path(folder)
+        (folder / "data").mkdir()
+        np.save(folder / "data" / "a.npy", rig.from_anatomical(calibration).numpy())
+        np.save(folder / "data" / "b.npy", rig.from_anatomical(test).numpy())
+        cfg = compose_config("train", ["task=head2neck", "data=theta_seq", f"data.path={folder / 'data'}",
+                                       "data.val_fraction=0.5", f"data.split_seed={split_seed}",
+                                       "trainer.progress=false", *overrides])
+        start = time.perf_counter()
+        final = loop.fit(cfg, folder / "run")
+        return final, time.perf_counter() - start
+
+
+def preset_error(name: str, rig, truth: torch.Tensor) -> float:
+    with torch.no_grad():
+        return joint_error_deg(rig.to_anatomical(predict_theta(shipped(name), rig, head_rotations(rig, truth))), truth)
+
+
+def drift(seeds: list[int], fixed: bool, overrides: list[str], share: float = DRIFT_SHARE,
+          drift_deg: float = DRIFT_DEG) -> None:
+    """Default calibration on the first half of the drifting stand-in (``share`` at C1-C2, ``drift_deg``),
+    scored on its second half, beside both presets and the nearest-neighbour bound; ``fixed``: also the advice
+    before issue 58 (``data.calibrate=false``: the files alone, 2000 steps from scratch)."""
+    rig = HeadNeckModel.builtin()
+    for seed in seeds:
+        truth = drifting_standin(rig, seed, share, drift_deg)
+        first, second = truth[:250], truth[250:]
+        print(f"\ndrifting stand-in (C1-C2 share {share:g}, drift {drift_deg:g} deg), seed {seed}: calibrated on "
+              f"frames 0-249, scored on 250-499 (joint error, deg)")
+        print(f"  nearest-neighbour bound {nearest_neighbour(first, second, rig):.3f}; preset hack "
+              f"{preset_error('hack', rig, second):.3f}, default {preset_error('default', rig, second):.3f}",
+              flush=True)
+        final, wall = run_theta_seq(rig, first, second, overrides)
+        print(f"  default calibration {' '.join(overrides)}: {final['joint_err_deg']:.3f} ({wall:.0f} s, head max "
+              f"{final['head_err_max_deg']:.1e} deg, inside limits {final['within_limits']:.4f})", flush=True)
+        if fixed:
+            final, wall = run_theta_seq(rig, first, second, ["data.calibrate=false"])
+            print(f"  data.calibrate=false (the files alone, 2000 steps from scratch): {final['joint_err_deg']:.3f} "
+                  f"({wall:.0f} s)", flush=True)
+
+
+MOTION_LAGS = (1, 5)     # frames back: the head's angular velocity and its motion over a short history
+MOTION_SCALE = 30.0      # radians per frame -> about radians per second at 30 fps (the features' unit size)
+
+
+def head_motion(theta: torch.Tensor, rig) -> torch.Tensor:
+    """[T, 3 * len(MOTION_LAGS)]: per lag k, the world rotation vector taking the head at frame t - k to its
+    orientation at t, divided by k and scaled (the first frames reuse frame 0)."""
+    from base.rotations import matrix_to_axis_angle
+
+    head = head_rotations(rig, theta)
+    columns = []
+    for lag in MOTION_LAGS:
+        before = head[(torch.arange(len(head)) - lag).clamp(min=0)]
+        columns.append(matrix_to_axis_angle(head @ before.transpose(1, 2)) * MOTION_SCALE / lag)
+    return torch.cat(columns, 1)
+
+
+def motion_input(seeds: list[int]) -> None:
+    """Does the head's recent motion help?  The calibration's candidates without the prior (from the hack
+    preset, and from scratch; 25/100/300 steps), with and without ``head_motion`` as extra input (zero-initialised
+    weights, so the preset starts unchanged): held-out blocks of the first half of the drifting stand-in, and
+    its second half after training on the whole first half."""
+    from tasks.head2neck_calibration import (
+        CalibrationConfig,
+        contiguous_blocks,
+        fold_frames,
+        load_preset,
+    )
+    from tasks.head2neck_stack import FrameBank, Member, StackedMLP, StackSettings, train_stack
+
+    config, rig = CalibrationConfig(), HeadNeckModel.builtin()
+    settings = StackSettings(config.batch_size, config.lr, config.warmup_steps, config.grad_clip, 1.0, 1.0, 1e-4)
+    lengths = [0, *config.steps]
+    starts = {"from hack": load_preset("hack"), "scratch": Head2NeckMLP(Head2NeckConfig())}
+    for seed in seeds:
+        truth = drifting_standin(rig, seed)
+        motion = head_motion(truth, rig)
+        half = len(truth) // 2
+        blocks = contiguous_blocks(half, config.folds)
+        print(f"\nhead motion as input, drifting stand-in seed {seed}: joint error (deg) after {lengths} steps")
+        for name, model in starts.items():
+            for extra in (None, motion):
+                bank = FrameBank.build(truth, rig, model, extra)
+                empty = torch.zeros(0, dtype=torch.long)
+                members = [Member(fold_frames(half, b, config.gap), empty, 0.0, torch.arange(*b)) for b in blocks]
+                members.append(Member(torch.arange(half), empty, 0.0, torch.arange(half, len(truth))))
+                width = 0 if extra is None else extra.shape[1]
+                errors = train_stack(StackedMLP([model] * len(members), width), bank, members, rig, settings,
+                                     lengths, config.seed)
+                folds = [float(torch.cat(errors[n][:-1]).mean()) for n in lengths]
+                second = [float(errors[n][-1].mean()) for n in lengths]
+                label = f"{name}, {'orientation + motion' if width else 'orientation'}"
+                print(f"  {label:34s} held-out blocks " + " ".join(f"{e:.3f}" for e in folds)
+                      + "; second half " + " ".join(f"{e:.3f}" for e in second), flush=True)
 
 
 def main() -> None:
@@ -270,14 +430,29 @@ def main() -> None:
     parser.add_argument("--accuracy", action="store_true", help="stand-in recording and shifted-prior errors")
     parser.add_argument("--train", action="store_true", help="also time a default training run")
     parser.add_argument("--styles", action="store_true", help="shares and errors of the in-vivo and HACK styles")
-    parser.add_argument("--calibration", action="store_true", help="frames of a recording against its error")
+    parser.add_argument("--calibration", type=int, nargs="*", default=None, metavar="FRAMES",
+                        help="frames of a recording against its error (none given: 50 150 300 500 1500)")
+    parser.add_argument("--drift", type=int, nargs="*", default=None, metavar="SEED",
+                        help="default calibration on the drifting stand-in (seeds; none given: 0 1 2)")
+    parser.add_argument("--drift-share", type=float, default=DRIFT_SHARE, help="with --drift: C1-C2's axial share")
+    parser.add_argument("--drift-deg", type=float, default=DRIFT_DEG, help="with --drift: the drift (deg, s.d.)")
+    parser.add_argument("--overrides", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="with --drift, --calibration: train.py settings of the default calibration runs")
+    parser.add_argument("--motion", type=int, nargs="*", default=None, metavar="SEED",
+                        help="the head's recent motion as extra input, on the drifting stand-in (seeds)")
+    parser.add_argument("--fixed", action="store_true", help="with --drift, --calibration: also "
+                        "data.calibrate=false runs (the advice before issue 58)")
     args = parser.parse_args()
-    if args.styles or args.calibration:
+    if args.styles or args.calibration is not None or args.drift is not None or args.motion is not None:
         torch.set_num_threads(1)
         if args.styles:
             styles(args.rig)
-        if args.calibration:
-            calibration()
+        if args.calibration is not None:
+            calibration(args.calibration or list(CALIBRATION_FRAMES), args.fixed, args.overrides)
+        if args.drift is not None:
+            drift(args.drift or [0, 1, 2], args.fixed, args.overrides, args.drift_share, args.drift_deg)
+        if args.motion is not None:
+            motion_input(args.motion or [0, 1, 2])
         return
     inference(args)
     if args.accuracy:

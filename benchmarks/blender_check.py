@@ -6,8 +6,9 @@ Blender (``scene.fbx.blender``: ``$BLENDER`` or ``blender`` on the PATH, with nu
 ``apt-get install blender python3-numpy``) imports the file in the background, plays its animation from
 frame 0 at the clip's rate and evaluates the skinned, shape-keyed mesh at each frame of ``--frames``
 (default: first, middle, last; ``all``: every frame).  This prints the largest and mean vertex distance
-(cm) from the rig's own mesh at the same frames, after Blender's axes (z up) are turned back into the
-rig's (y up): Blender (x, y, z) = rig (x, -z, y), in metres.
+(cm) from the rig's own mesh at the same frames (a fitted person's: with the params' ``shape_offset``),
+after Blender's axes (z up) are turned back into the rig's (y up): Blender (x, y, z) = rig (x, -z, y), in
+metres.
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data.params import load_params  # noqa: E402
-from scene.characters import resolve_rig  # noqa: E402
+from scene.characters import person_rig, resolve_rig  # noqa: E402
 from scene.fbx import blender_vertices  # noqa: E402
 from scene.gltf import METRES_PER_CM, rig_vertices  # noqa: E402
 from scene.gltf.mesh import split_uv_seams  # noqa: E402
@@ -46,7 +47,7 @@ def main() -> None:
     parser.add_argument("--rig", default=None, help="rig file overriding the one recorded in params")
     args = parser.parse_args()
     params = load_params(args.params)
-    rig = resolve_rig(params, args.params, args.rig)
+    rig = person_rig(resolve_rig(params, args.params, args.rig), params, args.params)   # a fit's shape_offset
     frames = choose_frames(args.frames, len(params))
     index = split_uv_seams(rig).rig_index          # Blender keeps the GLB's (and so the FBX's) vertex order
     expected = rig_vertices(rig, params, frames)[:, index] * METRES_PER_CM

@@ -77,11 +77,18 @@ def _ffmpeg(path: Path, what: str, wav_error: Exception | None = None) -> tuple[
     return ffmpeg, ffprobe
 
 
+def _file_argument(path: Path) -> str:
+    """``path`` as ffmpeg / ffprobe must be given it: absolute, so that a file named ``-y.mp4`` or ``-report``
+    is a file and not an option, and ``a:b.mov`` not a protocol (both read a leading ``-`` or ``name:`` so)."""
+    return os.path.abspath(path)
+
+
 def _decode(path: Path, wav_error: Exception | None = None) -> tuple[np.ndarray, int]:
     """Samples and rate of the first audio stream of ``path`` through ffmpeg (``wav_error``: see :func:`_ffmpeg`)."""
     ffmpeg, ffprobe = _ffmpeg(path, f"'{path.suffix}' audio", wav_error)
     probe = subprocess.run([ffprobe, "-v", "error", "-select_streams", "a:0", "-show_entries",
-                            "stream=sample_rate,channels", "-of", "json", str(path)], capture_output=True, text=True)
+                            "stream=sample_rate,channels", "-of", "json", _file_argument(path)],
+                           capture_output=True, text=True)
     if probe.returncode != 0:
         reason = (probe.stderr.strip().splitlines() or ["unknown format"])[-1]
         raise InputError(f"{path}: not a readable audio or video file ({reason}); expected a .wav, .mov or .mp4 "
@@ -91,8 +98,8 @@ def _decode(path: Path, wav_error: Exception | None = None) -> tuple[np.ndarray,
         raise InputError(f"{path}: no audio stream; expected a file with a sound track")
     rate = int(float(streams[0].get("sample_rate", 0)))
     _check_rate(path, rate)
-    decoded = subprocess.run([ffmpeg, "-nostdin", "-v", "error", "-i", str(path), "-map", "0:a:0", "-vn", "-ac", "1",
-                              "-f", "f32le", "-acodec", "pcm_f32le", "-"], capture_output=True)
+    decoded = subprocess.run([ffmpeg, "-nostdin", "-v", "error", "-i", _file_argument(path), "-map", "0:a:0", "-vn",
+                              "-ac", "1", "-f", "f32le", "-acodec", "pcm_f32le", "-"], capture_output=True)
     if decoded.returncode != 0:
         reason = (decoded.stderr.decode(errors="replace").strip().splitlines() or ["ffmpeg failed"])[-1]
         raise InputError(f"{path}: the sound track could not be decoded ({reason})")
@@ -156,7 +163,7 @@ def has_sound(path: Path) -> bool:
     if path.suffix.lower() == ".wav" or ffprobe is None:
         return True
     probe = subprocess.run([ffprobe, "-v", "error", "-select_streams", "a", "-show_entries", "stream=index", "-of",
-                            "csv=p=0", str(path)], capture_output=True, text=True)
+                            "csv=p=0", _file_argument(path)], capture_output=True, text=True)
     return probe.returncode == 0 and bool(probe.stdout.strip())
 
 

@@ -35,7 +35,7 @@ from base.errors import InputError, require_file
 from base.files import load_npy
 from base.rotations import matrix_to_quaternion, quaternion_to_matrix
 from base.tables import CsvTable
-from base.timebase import resample_uniform, row_name, time_axis
+from base.timebase import resample_held, resample_uniform, row_name, time_axis
 
 EXPRESSION_NAMES: tuple[str, ...] = (
     "browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R",
@@ -102,12 +102,20 @@ class ExpressionTrack:
     def __len__(self) -> int:
         return len(self.psi)
 
-    def resampled(self, fps: float) -> ExpressionTrack:
+    def resampled(self, fps: float, gap: float | None = None) -> ExpressionTrack:
         """The same recording linearly resampled to a uniform grid at ``fps`` (rotations by normalised
-        quaternion interpolation; ``tracked`` belongs to the recorded frames and is not carried over)."""
-        time, psi = resample_uniform(self.time, self.psi, fps)
-        head = None if self.head_ypr is None else resample_uniform(self.time, self.head_ypr, fps)[1]
-        rotation = None if self.head_rotation is None else resample_rotations(self.time, self.head_rotation, fps)
+        quaternion interpolation; ``tracked`` belongs to the recorded frames and is not carried over).
+        ``gap`` (s): under the gap rule (``base.timebase.resample_held``: frames further apart than ``gap``
+        are not interpolated over, the points between them hold the last one before)."""
+        def resample(values):
+            if gap is None:
+                return resample_uniform(self.time, values, fps)
+            return resample_held(self.time, values, fps, gap)
+
+        time, psi = resample(self.psi)
+        head = None if self.head_ypr is None else resample(self.head_ypr)[1]
+        rotation = None if self.head_rotation is None else resample_rotations(self.time, self.head_rotation, fps,
+                                                                               gap)
         return ExpressionTrack(psi.astype(np.float32), time, float(fps), head, list(self.missing), self.source,
                                rotation)
 
@@ -135,13 +143,16 @@ def mirror_name(hack_name: str) -> str:
     return hack_name
 
 
-def resample_rotations(time: np.ndarray, rotations: np.ndarray, fps: float) -> np.ndarray:
+def resample_rotations(time: np.ndarray, rotations: np.ndarray, fps: float, gap: float | None = None) -> np.ndarray:
     """Rotations [T,3,3] at ``time`` resampled on :func:`resample_uniform`'s grid at ``fps``: quaternions
     made continuous (each on the side of the previous one), interpolated linearly and normalised."""
     quaternions = matrix_to_quaternion(torch.as_tensor(np.asarray(rotations, dtype=np.float64))).numpy()
     signs = np.sign(np.einsum("ti,ti->t", quaternions[1:], quaternions[:-1]))
     quaternions[1:] *= np.cumprod(np.where(signs == 0, 1.0, signs))[:, None]
-    _, resampled = resample_uniform(time, quaternions, fps)
+    if gap is None:
+        _, resampled = resample_uniform(time, quaternions, fps)
+    else:
+        _, resampled = resample_held(time, quaternions, fps, gap)
     resampled /= np.linalg.norm(resampled, axis=1, keepdims=True)
     matrices = quaternion_to_matrix(torch.as_tensor(resampled)).numpy()
     return matrices.astype(np.asarray(rotations).dtype)

@@ -1,7 +1,11 @@
-"""Mesh files: a fast Wavefront OBJ reader and OBJ / PLY writers for posed frames.
+"""Mesh files: fast Wavefront OBJ and PLY readers, OBJ / PLY writers for posed frames.
 
 Faces are ``[F, k]`` vertex indices (0-based), ``k`` = 3 (triangles) or 4
 (quads); a mesh mixing the two is written as given and read as triangles.
+PLY (:func:`read_ply`): ascii, binary little and big endian; vertices ``x y z``, optional normals
+``nx ny nz`` and faces (``vertex_indices`` or ``vertex_index`` lists); a point cloud has no faces
+(``[0, 3]``).  Other elements and properties are read past and ignored.  :func:`read_points` reads the
+vertices of either format (a scan: a mesh or a point cloud).
 """
 from __future__ import annotations
 
@@ -13,6 +17,7 @@ import numpy as np
 
 from base.errors import InputError, require_file
 from base.files import atomic_path
+from data.ply import PlyMesh, read_ply
 
 
 @dataclass
@@ -130,3 +135,29 @@ def triangulate(faces: np.ndarray) -> np.ndarray:
     if faces.shape[1] == 3:
         return faces
     return np.concatenate([faces[:, [0, i, i + 1]] for i in range(1, faces.shape[1] - 1)], axis=0)
+
+
+def read_points(path: str | os.PathLike) -> np.ndarray:
+    """The vertices [N,3] (float64) of an OBJ or PLY mesh or point cloud; InputError naming the file when it
+    has none, holds a non-finite one, or is of another format."""
+    path = require_file(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".ply":
+            vertices = read_ply(path).vertices
+        elif suffix == ".obj":
+            vertices = read_obj(path, vertices_only=True).vertices
+        else:
+            vertices = None
+    except OSError as e:   # permissions, a device error: the file exists but cannot be read
+        raise InputError(f"{path}: cannot be read ({e.strerror or e}); expected a mesh or point cloud") from None
+    if suffix == ".obj":
+        bad = ~np.isfinite(vertices).all(axis=1)
+        if bad.any():
+            raise InputError(f"{path}: vertex {int(np.argmax(bad)) + 1} ('v' record) is not finite")
+    elif vertices is None:
+        raise InputError(f"{path}: a {suffix or 'suffix-less'} file; expected a mesh or point cloud (.obj or .ply)")
+    return vertices
+
+
+__all__ = ["ObjMesh", "PlyMesh", "read_obj", "read_ply", "read_points", "triangulate", "write_obj", "write_ply"]

@@ -15,7 +15,16 @@ exporters (``scene.gltf``, ``scene.preview``) read it.  Arrays (strings as 0-d u
 - optional, only in files made with audio (``infer.py audio=``; ``motion.voice``): ``f0 [T]`` the voice's
   fundamental frequency in Hz (0 = unvoiced) and ``tau_voice [T]`` the voice term, the part of ``tau``
   that pitch moves (UV units, zero-mean over the take; already included in ``tau``).  Files without them
-  load with both None; a reader that does not know them ignores them.
+  load with both None; a reader that does not know them ignores them;
+- optional, only in files made by fitting the rig to a capture (``motion.fit``): ``root_rotation [T,3,3]``
+  and ``root_translation [T,3]`` (cm), the rig's placement in the capture's frame, ``x_capture =
+  root_rotation @ x_rig + root_translation`` (the capture converted to cm; ``theta[:, 0]`` is then held
+  at zero, its rotation folded into the placement); ``fit_rms_mm [T]`` the fit's data term RMS per frame
+  (mm); ``shape_offset [V,3]`` (cm) the person's offset of the rig's rest mesh: the person's rig is the
+  rig with template + shape_offset (``data.assets.with_shape_offset``), everything else unchanged, and
+  ``rig_checksum`` stays the base rig's.  Readers check the checksum against the base rig, then apply the
+  offset (the exporters and ``motion.retarget`` do).  Absent: None.  ``head_rotation`` stays the
+  rig-frame head pose (the placement excluded).  Whoever re-saves a file keeps these fields.
 """
 from __future__ import annotations
 
@@ -33,7 +42,10 @@ from data.assets import RigData
 
 ARRAY_KEYS = ("time", "fps", "psi", "tau", "eta", "theta", "head_rotation")
 TEXT_KEYS = ("rig", "rig_checksum", "producers")
-OPTIONAL_KEYS = ("f0", "tau_voice")  # [T] float32 each; only in files made with audio
+OPTIONAL_KEYS = ("f0", "tau_voice",  # [T] float32 each; only in files made with audio
+                 "root_rotation", "root_translation", "fit_rms_mm", "shape_offset")  # fitted files (motion.fit)
+FIT_KEYS = ("root_rotation", "root_translation", "fit_rms_mm", "shape_offset")
+ROTATION_TOLERANCE = 1e-3  # root_rotation: |R^T R - I| and |det R - 1| at most this (float32 storage)
 
 
 def rig_checksum(rig: RigData) -> str:
@@ -54,7 +66,8 @@ class AnimationParams:
     """Per-frame rig inputs at ``fps``.
 
     time [T] s, psi [T,E], tau [T], eta [T], theta [T,J,3] (bone frames of ``rig``), head_rotation [T,3,3];
-    optional f0 [T] Hz (0 = unvoiced) and tau_voice [T] (the voice's share of tau), None when absent.
+    optional f0 [T] Hz (0 = unvoiced) and tau_voice [T] (the voice's share of tau); optional fit results
+    root_rotation [T,3,3], root_translation [T,3] cm, fit_rms_mm [T], shape_offset [V,3] cm; None when absent.
     """
 
     time: np.ndarray
@@ -71,6 +84,10 @@ class AnimationParams:
     producers: dict = field(default_factory=dict)
     f0: np.ndarray | None = None
     tau_voice: np.ndarray | None = None
+    root_rotation: np.ndarray | None = None
+    root_translation: np.ndarray | None = None
+    fit_rms_mm: np.ndarray | None = None
+    shape_offset: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.time = np.asarray(self.time, dtype=np.float64)
@@ -86,8 +103,13 @@ class AnimationParams:
         for name in present:
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.float32))
         t, j, e = len(self.time), len(self.joint_names), len(self.expression_names)
+        shapes = {"f0": (t,), "tau_voice": (t,), "root_rotation": (t, 3, 3), "root_translation": (t, 3),
+                  "fit_rms_mm": (t,)}
+        if self.shape_offset is not None:
+            v = self.shape_offset.shape[0] if self.shape_offset.ndim == 2 else -1
+            shapes["shape_offset"] = (v, 3) if v > 0 else ("V", 3)
         expected = {"time": (t,), "psi": (t, e), "tau": (t,), "eta": (t,), "theta": (t, j, 3),
-                    "head_rotation": (t, 3, 3), **{name: (t,) for name in present}}
+                    "head_rotation": (t, 3, 3), **{name: shapes[name] for name in present}}
         for name, shape in expected.items():
             if getattr(self, name).shape != shape:
                 raise ValueError(f"{name} has shape {getattr(self, name).shape}, expected {list(shape)}")
@@ -103,13 +125,23 @@ class AnimationParams:
                 raise ValueError(f"{name} is not finite at index {tuple(bad.tolist())}")
         if self.f0 is not None and (self.f0 < 0).any():
             raise ValueError(f"f0 is negative at frame {int(np.argmax(self.f0 < 0))}; expected Hz, 0 = unvoiced")
+        if self.root_rotation is not None:
+            r = self.root_rotation.astype(np.float64)
+            error = np.abs(r.transpose(0, 2, 1) @ r - np.eye(3)).max(axis=(1, 2)) + np.abs(np.linalg.det(r) - 1)
+            if (error > ROTATION_TOLERANCE).any():
+                raise ValueError(f"root_rotation at frame {int(np.argmax(error > ROTATION_TOLERANCE))} is not a "
+                                 f"rotation (|R^T R - I| + |det R - 1| = {error.max():.3g}); expected rotations")
+        if (self.root_rotation is None) != (self.root_translation is None):
+            raise ValueError("root_rotation and root_translation go together (the placement); one is missing")
 
     def __len__(self) -> int:
         return len(self.time)
 
 
 def save_params(path: str | os.PathLike, params: AnimationParams) -> None:
-    """Write ``params`` to ``path`` (``.npz``) atomically; ``f0`` / ``tau_voice`` only when present."""
+    """Write ``params`` to ``path`` (``.npz``) atomically; the optional arrays (``OPTIONAL_KEYS``) only when
+    present."""
+    params.__post_init__()  # shapes and values checked again: a caller may have changed the arrays
     optional = {name: getattr(params, name) for name in OPTIONAL_KEYS if getattr(params, name) is not None}
     save_npz(path, compressed=True, **optional, time=params.time, fps=np.float64(params.fps), psi=params.psi,
              tau=params.tau, eta=params.eta, theta=params.theta, head_rotation=params.head_rotation,
@@ -144,6 +176,12 @@ def load_params(path: str | os.PathLike) -> AnimationParams:
             producers=producers, **{name: stored[name] for name in OPTIONAL_KEYS if name in stored})
     except (ValueError, TypeError) as e:
         raise InputError(f"{path}: {e}") from None
+
+
+def fit_fields(params: AnimationParams, shape: bool = True) -> dict:
+    """The fit's optional fields of ``params`` as keyword arguments, for a reader that re-saves a clip
+    (``shape``: with ``shape_offset``, which belongs to the rig the clip drives)."""
+    return {name: getattr(params, name) for name in FIT_KEYS if shape or name != "shape_offset"}
 
 
 def check_rig(params: AnimationParams, rig: RigData, source: str | os.PathLike, rig_key: str = "rig") -> None:

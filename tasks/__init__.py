@@ -109,7 +109,11 @@ class TrainerConfig:
         if (self.early_stopping_patience is not None or self.restore_best) and self.eval_every <= 0:
             raise ValueError("early_stopping_patience and restore_best need validation during training: "
                              f"eval_every is {self.eval_every}, expected > 0")
-        for name in ("max_steps", "log_every", "checkpoint_every"):
+        # max_steps 0: no step, the task's model as it starts is evaluated and saved (a calibration that trained
+        # it itself, or kept a shipped model: tasks/head2neck.py).
+        if self.max_steps is not None and self.max_steps < 0:
+            raise ValueError(f"max_steps is {self.max_steps}, expected at least 0")
+        for name in ("log_every", "checkpoint_every"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"{name} is {getattr(self, name)}, expected at least 1")
 

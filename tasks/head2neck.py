@@ -9,11 +9,17 @@ and the defaults; the YAML files hold only what differs):
     (``data.cervical_prior``, its settings under ``data.prior``), one person each; validation sequences
     come from another seed (``val_seed`` != ``seed``), so from new persons;
   - ``data=theta_seq data.path=...``, :class:`ThetaSeqData`: the user's own theta sequences (a ``.npy``
-    ``[T,8,3]`` or a folder of them, HACK release layout: bone frames of ``rig``; per frame, so no frame
-    rate), alone or mixed with the prior: ``data.prior_weight`` is the share of every batch drawn from the
-    prior (0 = the files alone).  Several files are split by file (``val_fraction`` of them, chosen with
+    ``[T,8,3]``, HACK release layout: bone frames of ``rig``; per frame, so no frame rate; or the
+    ``params.npz`` of a fit, ``motion.fit``, whose rig checksum must be ``rig``'s; or a folder of either,
+    e.g. a folder of fit folders).  Several files are split by file (``val_fraction`` of them, chosen with
     ``split_seed``), a single file by time (its last ``val_fraction`` of frames); validation is on the
-    held-out frames of the files only.
+    held-out frames of the files only.  By default (``data.calibrate=true``) the training frames decide how
+    far to trust them (``tasks.head2neck_calibration``: time-blocked cross-validation over the starting point,
+    the prior's share and style and the length, the shipped preset kept when nothing beats it); the chosen
+    model is trained there and the loop only evaluates and saves it (``trainer.max_steps`` stays null;
+    ``data.start``, ``data.prior_weight``, ``data.steps`` fix a choice).  ``data.calibrate=false``: the loop
+    trains ``trainer.max_steps`` (null: 2000) steps from ``data.start`` (scratch by default) with
+    ``data.prior_weight`` (0 by default: the files alone) of every batch drawn from the prior.
 Head orientations are the rig's forward kinematics of the poses (``cfg.rig``, built-in by default).
 Poses are handled in the joints' anatomical frames (``HeadNeckModel.to_anatomical``), where the limits and
 the prior are written; real sequences arrive in bone frames and are converted.  The trained model holds
@@ -31,7 +37,6 @@ analytic baselines after the same correction.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,19 +47,20 @@ from base.cli import REQUIRED, register_config, to_dataclass
 from base.errors import InputError
 from base.rotations import axis_angle_to_matrix, relative_angle
 from data.cervical_prior import PriorConfig, head_rotations, load_theta_sequences, sample_sequences
-from data.joint_limits import adjacent_similarity_energy, rotation_limit_energy, within_limits
+from data.joint_limits import within_limits
 from data.splits import split_by_file
 from models.head2neck import (
     Head2NeckConfig,
     Head2NeckMLP,
     build_model,
-    chain_head_rotation,
     correct_to_head,
     head_error_deg,
     model_config,
     split_head_rotation,
 )
 from models.rig import HeadNeckModel
+from tasks.head2neck_calibration import STARTS, CalibrationConfig, better_preset, calibrate, load_preset
+from tasks.head2neck_stack import pose_loss
 
 __all__ = ["Task", "build_model", "Head2NeckTaskConfig", "SyntheticData", "ThetaSeqData"]
 
@@ -104,20 +110,30 @@ class ThetaSeqData:
     """``data=theta_seq``: real theta sequences, alone or mixed with the prior."""
 
     kind: str = "theta_seq"
-    path: str = REQUIRED             # a .npy [T,8,3] (bone frames, axis-angle radians) or a folder of them
+    # a .npy [T,8,3] (bone frames, axis-angle radians), a fit's params.npz (motion.fit; checked against rig=),
+    # or a folder of them (e.g. a folder of fit folders)
+    path: str = REQUIRED
     val_fraction: float = 0.2        # files held out (several files) or last frames held out (one file)
     split_seed: int = 0              # which files are held out
-    prior_weight: float = 0.0        # share of each batch drawn from the prior; 0 = the files alone
-    prior_sequences: int = 1024      # prior sequences to draw batches from when prior_weight > 0
+    calibrate: bool = True           # cross-validate on time blocks how far to trust the files (module docstring)
+    start: str | None = None         # default | hack | preset (the better) | scratch; null: chosen, or scratch
+    prior_weight: float | None = None  # share of each batch drawn from the prior; null: chosen (calibrate) or 0
+    steps: int | None = None         # training length when calibrating; null: chosen
+    prior_sequences: int = 1024      # prior sequences to draw batches from when prior_weight > 0 (calibrate=false)
     prior_seed: int = 1
-    prior: PriorConfig = field(default_factory=PriorConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)   # calibrate=true: the style follows the preset
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     def __post_init__(self) -> None:
-        if not 0 <= float(self.prior_weight) < 1:
+        if self.prior_weight is not None and not 0 <= float(self.prior_weight) < 1:
             raise ValueError(f"prior_weight={self.prior_weight}: expected a share in [0, 1) (1 would ignore the "
                              f"files; use data=synthetic)")
         if int(self.prior_sequences) < 1:
             raise ValueError(f"prior_sequences is {self.prior_sequences}, expected at least 1")
+        if self.start is not None and self.start not in STARTS:
+            raise ValueError(f"start={self.start}: expected one of {', '.join(STARTS)} (or null)")
+        if self.steps is not None and int(self.steps) < 0:
+            raise ValueError(f"steps={self.steps}: expected a non-negative length (or null)")
 
 
 register_config("head2neck_task_schema", Head2NeckTaskConfig, group="task")
@@ -125,6 +141,7 @@ register_config("head2neck_model_schema", Head2NeckConfig, group="model")
 register_config("head2neck_synthetic_schema", SyntheticData, group="data_task")
 register_config("head2neck_theta_seq_schema", ThetaSeqData, group="data_task")
 
+DEFAULT_STEPS = 2000   # the loop's length when trainer.max_steps is null and nothing is calibrated
 DATA_FILES = {"synthetic": "configs/data_task/head2neck_synthetic.yaml",
               "theta_seq": "configs/data_task/head2neck_theta_seq.yaml"}
 
@@ -172,10 +189,48 @@ class Task:
         train, val, self.val_description = self._sequences()
         self.train = self._frames(np.concatenate(train))
         self.val = self._frames(np.concatenate(val))
-        self.prior = None
-        if isinstance(self.data, ThetaSeqData) and self.data.prior_weight > 0:
-            self.prior = self._frames(prior_frames(self.data.prior_sequences, self.data.prior_seed, self.data.prior))
+        self.prior, self.prior_weight, self.calibration = None, 0.0, None
+        self.total_steps = DEFAULT_STEPS   # trainer.max_steps=null (configs/trainer/head2neck.yaml)
+        if isinstance(self.data, ThetaSeqData):
+            if self.data.calibrate:
+                self._calibrate(train, cfg)
+            else:
+                self._fixed_knobs(train)
         self._baselines: dict | None = None
+
+    # ------------------------------------------------------------------ calibration (data=theta_seq)
+
+    def _calibrate(self, train: list[np.ndarray], cfg: DictConfig) -> None:
+        """Choose and train the model by time-blocked cross-validation (``tasks.head2neck_calibration``); the
+        loop then trains no step."""
+        max_steps = cfg.trainer.get("max_steps")
+        if max_steps is not None:
+            raise InputError(f"trainer.max_steps={max_steps} with data.calibrate=true: the calibration trains the "
+                             f"model itself and chooses its length (fix it with data.steps={max_steps}), or set "
+                             f"data.calibrate=false to train {max_steps} steps in the loop")
+        data, task = self.data, self.task
+        self.calibration = calibrate(
+            [torch.as_tensor(t, dtype=torch.float32) for t in train], self.rig, self.model.config,
+            {"lambda_fk": float(task.lambda_fk), "lambda_rot": float(task.lambda_rot),
+             "lambda_sim": float(task.lambda_sim)}, data.calibration, data.prior, data.start,
+            None if data.prior_weight is None else float(data.prior_weight),
+            None if data.steps is None else int(data.steps))
+        self.model = self.calibration.model
+        self.total_steps = 0
+
+    def _fixed_knobs(self, train: list[np.ndarray]) -> None:
+        """``data.calibrate=false``: the loop trains from ``data.start`` with ``data.prior_weight`` of the prior."""
+        data = self.data
+        start = data.start or "scratch"
+        if start == "preset":
+            start = better_preset(torch.as_tensor(np.concatenate(train), dtype=torch.float32), self.rig)
+        if start != "scratch":
+            self.model = load_preset(start)
+        self.prior_weight = float(data.prior_weight or 0.0)
+        if self.prior_weight > 0:
+            self.prior = self._frames(prior_frames(data.prior_sequences, data.prior_seed, data.prior))
+        if data.steps is not None:
+            self.total_steps = int(data.steps)
 
     # ------------------------------------------------------------------ data
 
@@ -188,7 +243,7 @@ class Task:
                            f"{data.prior.seconds:g} s at {data.prior.fps:g} fps)")
             return [train], [val], description
         sequences = [self.rig.to_anatomical(torch.as_tensor(s.theta)).numpy()  # release layout: bone frames
-                     for s in load_theta_sequences(data.path, self.rig.num_joints)]
+                     for s in load_theta_sequences(data.path, self.rig.num_joints, self.rig.rig)]
         return split_sequences(sequences, float(data.val_fraction), int(data.split_seed), str(data.path))
 
     def _frames(self, theta: np.ndarray) -> dict[str, torch.Tensor]:
@@ -197,7 +252,7 @@ class Task:
 
     def batch(self, step: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         size = int(self.task.batch_size)
-        from_prior = 0 if self.prior is None else int(round(size * float(self.data.prior_weight)))
+        from_prior = 0 if self.prior is None else int(round(size * self.prior_weight))
         index = torch.randint(len(self.train["head"]), (size - from_prior,), generator=generator)
         batch = {name: value[index] for name, value in self.train.items()}
         if from_prior:
@@ -209,15 +264,8 @@ class Task:
 
     def loss(self, batch: dict[str, torch.Tensor], step: int) -> tuple[torch.Tensor, dict[str, float]]:
         task = self.task
-        theta = self.model(batch["head"], self.rest)
-        joint = 0.5 * ((axis_angle_to_matrix(theta) - batch["rotations"]) ** 2).sum((-1, -2)).mean()
-        consistency = 0.5 * ((chain_head_rotation(theta, self.rig) - batch["head"]) ** 2).sum((-1, -2)).mean()
-        e_rot = rotation_limit_energy(theta).mean()
-        e_sim = adjacent_similarity_energy(theta, self.rig.parents).mean()
-        loss = joint + task.lambda_fk * consistency + task.lambda_rot * e_rot + task.lambda_sim * e_sim
-        joint, consistency, e_rot, e_sim = (float(x.detach()) for x in (joint, consistency, e_rot, e_sim))
-        return loss, {"loss": float(loss.detach()), "joint_rms_deg": math.degrees(math.sqrt(joint)),
-                      "head_rms_deg": math.degrees(math.sqrt(consistency)), "e_rot": e_rot, "e_sim": e_sim}
+        return pose_loss(self.model(batch["head"], self.rest), batch["rotations"], batch["head"], self.rig,
+                         task.lambda_fk, task.lambda_rot, task.lambda_sim)
 
     # ------------------------------------------------------------------ evaluation
 
@@ -235,6 +283,13 @@ class Task:
             per_joint, head_mean, head_max, inside = rows[name]
             metrics.update({f"{name}_joint_err_deg": float(per_joint.mean()), f"{name}_head_err_mean_deg": head_mean,
                             f"{name}_head_err_max_deg": head_max, f"{name}_within_limits": inside})
+        if self.calibration is not None:
+            choice = self.calibration
+            metrics.update(calibration_heldout_err_deg=choice.error,
+                           calibration_preset_heldout_err_deg=choice.preset_error,
+                           calibration_kept_preset=float(choice.candidate is None),
+                           calibration_steps=float(choice.steps),
+                           calibration_prior_weight=choice.candidate.prior_weight if choice.candidate else 0.0)
         if final:
             self._print_table(rows, len(head))
         return metrics

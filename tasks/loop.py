@@ -198,6 +198,8 @@ class Training:
             if self.validation.stopped:
                 break
         elapsed = time.perf_counter() - started
+        if main and stop == self.start == 0:  # max_steps 0: the model as the task built it
+            self.save(0)
         if stop < trainer.max_steps and not self.validation.stopped:
             if main:
                 print(f"stopped after step {stop} of {trainer.max_steps} (trainer.stop_after); resume=true continues")

@@ -521,3 +521,35 @@ def test_command_line(builtin_rig, tmp_path, capsys):
         assert exit_.value.code == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "b.glb").exists()
+
+
+def smooth_offset(rig: HeadNeckModel, seed: int = 0, amplitude_cm: float = 0.6) -> np.ndarray:
+    """A smooth per-vertex offset [N,3] cm (a fitted person's shape): a few low-frequency waves over the
+    template's extent, plus a widening of the neck."""
+    rng = np.random.default_rng(seed)
+    template = rig.rig.template.astype(np.float64)
+    unit = (template - template.mean(0)) / np.ptp(template, axis=0).max()
+    offset = np.zeros_like(template)
+    for _ in range(4):
+        frequency, phase = rng.normal(0, 3, 3), rng.uniform(0, 2 * np.pi)
+        offset += rng.normal(0, 1, 3) * np.sin(unit @ frequency + phase)[:, None]
+    offset *= amplitude_cm / np.abs(offset).max()
+    offset[:, [0, 2]] += 0.3 * unit[:, [0, 2]]
+    return offset.astype(np.float32)
+
+
+def test_a_fitted_shape_exports_as_that_person(builtin_rig, tmp_path, capsys):
+    """params with shape_offset -> python -m scene.gltf -> the GLB's mesh at each frame is the rig with the
+    offset template posed (to 0.01 cm, the issue's round-trip bound), not the base rig's."""
+    from data.assets import with_shape_offset
+
+    offset = smooth_offset(builtin_rig)
+    params = dataclasses.replace(clip(builtin_rig, frames=6), shape_offset=offset)
+    source = tmp_path / "params.npz"
+    save_params(source, params)
+    run_cli("gltf", run, [f"source={source}", f"out={tmp_path / 'person.glb'}"])
+    assert "max vertex error" in capsys.readouterr().out
+    person = HeadNeckModel(with_shape_offset(builtin_rig.rig, offset))
+    frames = [0, 2, 5]
+    assert reimport_error_cm(tmp_path / "person.glb", person, params, frames) < 0.01
+    assert reimport_error_cm(tmp_path / "person.glb", builtin_rig, params, frames) > 0.5 * np.abs(offset).max()

@@ -425,8 +425,8 @@ def theta_seq_config(path, rig_file, *extra):
     with initialize_config_dir(config_dir=CONFIGS, version_base=None):
         return compose("train", overrides=[
             "task=head2neck", "data=theta_seq", f"data.path={path}", f"rig={rig_file}", "model.hidden=[128,128]",
-            "trainer.max_steps=300", "trainer.eval_every=0", "trainer.progress=false", "trainer.threads=1",
-            "task.batch_size=256", *extra])
+            "data.calibrate=false", "trainer.max_steps=300", "trainer.eval_every=0", "trainer.progress=false",
+            "trainer.threads=1", "task.batch_size=256", *extra])
 
 
 # The users' own captures: persons of another prior than the default one (so what is learnt comes from the files).

@@ -94,7 +94,9 @@ def test_missing_columns_run_when_allowed(tmp_path):
 
 @pytest.mark.parametrize("overrides, message", [
     (["mesh_format=stl"], r"mesh_format=stl: expected one of ply, obj"),
-    (["export=[usd]"], r"export=\[.usd.\]: expected some of glb, mp4, html, fbx"),
+    (["export=[obj]"], r"export=\[.obj.\]: expected some of glb, mp4, html, fbx, usd"),
+    (["usd_format=abc"], r"usd_format=abc: expected one of usdc, usda, usdz"),
+    (["usd_units=mm"], r"usd_units=mm: expected one of cm, m"),
     (["fbx_units=mm"], r"fbx_units=mm: expected one of cm, m"),
     (["workers=0"], r"workers=0: expected at least 1"),
     (["swallow_template=t.csv"], r"swallow_template=t\.csv needs swallow_at"),

@@ -103,3 +103,54 @@ def test_atomic_path_leaves_the_old_file_on_failure(tmp_path):
             tmp.write_text("half")
             raise RuntimeError("crash while writing")
     assert target.read_text() == "old" and list(tmp_path.iterdir()) == [target]
+
+
+STAGE_AND_HANG = """
+import sys, time
+from pathlib import Path
+from base.files import atomic_folder
+with atomic_folder(Path(sys.argv[1])) as staging:
+    (staging / "params.npz").write_bytes(b"half")
+    print("staged", flush=True)
+    time.sleep(60)
+"""
+
+
+def test_atomic_folder_sweeps_the_staging_of_a_killed_run(tmp_path):
+    """An infer.py run SIGKILLed while writing leaves its ``.partial`` staging folder (no ``finally`` runs);
+    the next run for the same out_dir removes it, and names it.  A live process's, another machine's and
+    another out_dir's are left."""
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    from base.files import atomic_folder, stale_staging
+    from tests.conftest import REPO
+
+    out = tmp_path / "take"
+    child = subprocess.Popen([sys.executable, "-c", STAGE_AND_HANG, str(out)], stdout=subprocess.PIPE, text=True,
+                             cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        assert child.stdout.readline().strip() == "staged"
+        (killed,) = [p for p in tmp_path.iterdir() if p.name.endswith(".partial")]
+        assert stale_staging(out) == []                                  # its process is alive: not stale
+    finally:
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait()
+        child.stdout.close()
+    assert (killed / "params.npz").read_bytes() == b"half" and not out.exists()
+    assert stale_staging(out) == [killed]
+    host = socket.gethostname()
+    kept = [tmp_path / f".take.{host}-{os.getpid()}.abcd1234.partial",       # this process: alive
+            tmp_path / ".take.another-host-1.abcd1234.partial",              # another machine's
+            tmp_path / f".take2.{host}-{child.pid}.abcd1234.partial"]        # another out_dir's
+    for path in kept:
+        path.mkdir()
+    said = []
+    with atomic_folder(out, said.append) as staging:
+        (staging / "params.npz").write_bytes(b"whole")
+    assert (out / "params.npz").read_bytes() == b"whole"
+    assert not killed.exists() and all(path.is_dir() for path in kept)
+    assert said == [f"{out}: removed {killed.name}, the unfinished output of a run that was killed"]

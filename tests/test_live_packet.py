@@ -80,7 +80,18 @@ def malformed() -> dict[str, tuple[bytes, int]]:
         "trailing": (good + b"\0\0\0\0", values_at),
         "negative_length": (bytes([6]) + struct.pack(">i", -1) + good[5:], 1),
         "encoding": (datagram(subject=b"\xff\xfeAna"), 45),
-        "rate": (datagram(rate=(0, 1)), 45 + 3),
+        "rate": (datagram(rate=(0, 1)), 48 + 8),
+        "rate_half": (datagram(rate=(1, 2)), 48 + 8),           # 0.5 fps: a ZeroDivisionError before issue 59
+        "rate_huge": (datagram(rate=(2**31 - 1, 1)), 48 + 8),   # 16 GiB asked of numpy at the end before
+        "rate_negative": (datagram(rate=(-60, -1)), 48 + 8),
+        "rate_241": (datagram(rate=(241, 1)), 48 + 8),
+        "subframe_nan": (datagram(subframe=float("nan")), 48 + 4),
+        "subframe_huge": (datagram(subframe=1e30), 48 + 4),    # an endless loop before issue 59
+        "subframe_negative": (datagram(subframe=-1.0), 48 + 4),
+        "subframe_one": (datagram(subframe=1.0), 48 + 4),
+        "frame_negative": (datagram(frame=-1), 48),
+        "frame_max": (datagram(frame=2**31 - 1), 48),
+        "frame_next_day": (datagram(frame=86400 * 60), 48),
         "non_finite_nan": (datagram(values=nan), values_at + 4 * 17),
         "non_finite_inf": (datagram(values=inf), values_at + 4 * 54),
         "absurd": (datagram(values=wild), values_at + 4 * 23),
@@ -90,7 +101,11 @@ def malformed() -> dict[str, tuple[bytes, int]]:
 
 REASON = {"empty": "too_short", "truncated": "too_short", "header_only": "too_short", "version": "version",
           "metahuman": "version", "count": "count", "trailing": "length", "negative_length": "length",
-          "encoding": "encoding", "rate": "rate", "non_finite_nan": "non_finite", "non_finite_inf": "non_finite",
+          "encoding": "encoding", "rate": "rate",
+          "rate_half": "rate", "rate_huge": "rate", "rate_negative": "rate", "rate_241": "rate",
+          "subframe_nan": "subframe", "subframe_huge": "subframe", "subframe_negative": "subframe",
+          "subframe_one": "subframe", "frame_negative": "frame", "frame_max": "frame", "frame_next_day": "frame",
+          "non_finite_nan": "non_finite", "non_finite_inf": "non_finite",
           "absurd": "absurd", "no_face": "no_face"}
 
 
@@ -102,3 +117,11 @@ def test_malformed_reason_and_offset(kind):
     assert caught.value.reason == REASON[kind]
     assert caught.value.offset == offset, str(caught.value)
     assert f"at byte {offset}" in str(caught.value) and "expected" in str(caught.value)
+
+
+@pytest.mark.parametrize("rate, frame, subframe", [((30000, 1001), 86400 * 30 - 1, 0.999), ((1, 1), 0, 0.0),
+                                                   ((240, 1), 123, 0.5), ((24, 1), 86400 * 24 - 1, 0.0)])
+def test_range_edges_accepted(rate, frame, subframe):
+    """The edges of each range are legal: 1 and 240 fps, NTSC's 30000/1001, the day's last frame."""
+    parsed = parse(datagram(rate=rate, frame=frame, subframe=subframe))
+    assert (parsed.rate, parsed.frame) == (rate, frame) and parsed.subframe == pytest.approx(subframe, abs=1e-6)

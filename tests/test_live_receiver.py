@@ -40,18 +40,32 @@ def receiver(models):
     rx.close()
 
 
-def send_and_drain(rx: LiveReceiver, datagrams: list[bytes], timeout: float = 10.0) -> int:
-    """Send over loopback in small batches (the kernel buffer may be small), draining after each; handled."""
+_SENDERS: dict[tuple[int, str], socket.socket] = {}  # one phone = one source address (streams are bound to it)
+
+
+def sender(rx: LiveReceiver, source: str = "127.0.0.1") -> socket.socket:
+    """The socket a test's phone sends to ``rx`` from (the same one for every call: the same address)."""
+    key = (id(rx), source)
+    if key not in _SENDERS:
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        tx.bind((source, 0))
+        _SENDERS[key] = tx
+    return _SENDERS[key]
+
+
+def send_and_drain(rx: LiveReceiver, datagrams: list[bytes], timeout: float = 10.0, source: str = "127.0.0.1") -> int:
+    """Send over loopback from ``source`` in small batches (the kernel buffer may be small), draining after
+    each; handled."""
     handled, deadline = 0, time.monotonic() + timeout
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
-        for start in range(0, len(datagrams), 100):
-            batch = datagrams[start:start + 100]
-            for data in batch:
-                tx.sendto(data, rx.address)
-            target = handled + len(batch)
-            while handled < target and time.monotonic() < deadline:
-                if rx.wait(0.05):
-                    handled += rx.drain()
+    tx = sender(rx, source)
+    for start in range(0, len(datagrams), 100):
+        batch = datagrams[start:start + 100]
+        for data in batch:
+            tx.sendto(data, rx.address)
+        target = handled + len(batch)
+        while handled < target and time.monotonic() < deadline:
+            if rx.wait(0.05):
+                handled += rx.drain()
     return handled
 
 
@@ -70,10 +84,10 @@ def test_bad_datagrams_counted_stream_goes_on(receiver):
     expected["late"] = 1
     assert dict(receiver.rejected) == expected
     stream = receiver.streams[(DEVICE, "ana")]
-    assert stream.recorded.frames == [int(f) for f in take.frames[:11]]
+    assert stream.recorded.frames == 11 and stream.last_frame == int(take.frames[10])
     assert stream.late == 1 and stream.clamped == 1 and stream.missing == 0
     assert len(stream.recorded.tau) == 6  # 60 -> 30 fps: frames 0, 2, ..., 10
-    assert max(stream.recorded.values[-1][:52]) == pytest.approx(1.5)
+    assert max(float(v) for v in stream.rows[-1].split(",")[2:54]) == pytest.approx(1.5)  # capture.csv's row
 
 
 def test_garbage_flood_bounded(receiver):
@@ -201,6 +215,66 @@ def test_jump_and_rate_change_refused(receiver):
     receiver.handle(encode(DEVICE, "ana", take.frames[3] + 60 * 11, take.values[4]), now)  # > max_gap_seconds
     receiver.handle(encode(DEVICE, "ana", take.frames[4], take.values[4], rate=(30, 1)), now)
     receiver.handle(encode(DEVICE, "ana", take.frames[3] + 60 * 9, take.values[4]), now)  # a 9 s gap: filled
-    assert receiver.flush() == 2 + 270  # frames 0 and 2, then the 30 fps grid up to 9.05 s
+    assert receiver.flush() == 2  # frames 0 and 2 run; the 9 s gap is held (the gap rule): nothing run
     assert dict(receiver.rejected) == {"jump": 1, "rate": 1}
-    assert receiver.streams[(DEVICE, "ana")].missing == 60 * 9 - 1
+    stream = receiver.streams[(DEVICE, "ana")]
+    assert stream.missing == 60 * 9 - 1 and stream.gaps == 1
+    assert len(stream.recorded.tau) == 272 and stream.recorded.held == 270  # the grid up to 9.05 s (271.5 frames)
+    assert stream.recorded.tau[2:] == [stream.recorded.tau[1]] * 270
+
+
+def test_allow_idle_and_failure_isolated(models, tmp_path):
+    """allow= refuses other senders unread; an idle stream is closed and written, freeing its slot; a stream
+    that raises is closed with its reason and what it received, the other goes on."""
+    from motion.live.outputs import SessionWriter
+
+    take = demo_as_take()
+    walled = LiveReceiver(models, stream_options(LiveConfig()), "127.0.0.1", 0, announce=lambda *_: None,
+                          allow=["10.0.0.0/8", "192.168.1.20"])
+    try:
+        assert send_and_drain(walled, [encode(DEVICE, "ana", take.frames[0], take.values[0])]) == 1
+        assert dict(walled.rejected) == {"not_allowed": 1} and not walled.streams
+    finally:
+        walled.close()
+    out = tmp_path / "live"
+    out.mkdir()
+    rx = LiveReceiver(models, stream_options(LiveConfig()), "127.0.0.1", 0, max_phones=2, announce=lambda *_: None,
+                      writer=SessionWriter(out, 1.0), idle_seconds=5.0)
+    try:
+        now, address = time.perf_counter_ns(), ("127.0.0.1", 40000)
+        for i in range(6):
+            rx.handle(encode(DEVICE, "ana", take.frames[i], take.values[i]), now, address)
+            rx.handle(encode("device-ben", "ben", take.frames[i], take.values[i]), now, ("127.0.0.1", 40001))
+        rx.flush()
+        rx.streams[("device-ben", "ben")].accept = lambda *_: 1 / 0  # a bug in one stream
+        rx.handle(encode("device-ben", "ben", take.frames[6], take.values[6]), now, ("127.0.0.1", 40001))
+        rx.handle(encode(DEVICE, "ana", take.frames[6], take.values[6]), now, address)
+        rx.flush()
+        assert list(rx.streams) == [(DEVICE, "ana")] and rx.rejected["stream_error"] == 1
+        spoof = encode(DEVICE, "ana", take.frames[100], take.values[7])  # a later frame, from another port
+        assert rx.handle(spoof, now, ("127.0.0.1", 49999)) == 0 and rx.rejected["address"] == 1
+        assert rx.streams[(DEVICE, "ana")].last_frame == int(take.frames[6])  # the phone's stream untouched
+        assert rx.expire(now + 4_000_000_000) == 0 and rx.expire(now + 6_000_000_000) == 1 and not rx.streams
+        assert rx.handle(encode(DEVICE, "ana", take.frames[0], take.values[0]), now, ("127.0.0.1", 40002)) == 1
+        assert rx.streams[(DEVICE, "ana")].folder == "ana-6C3A2E5F-0000-4000-8000-000000000001"  # a new stream
+    finally:
+        rx.close()
+    ben = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else None
+    assert ben is None  # summary.json only at stop; the closed streams' params are already there
+    assert len(load_params(out / "ben" / "params.npz")) == 3 and len(load_params(out / "ana" / "params.npz")) == 4
+    assert (out / "ben" / "capture.csv").read_text().count("\n") == 1 + 6
+
+
+def test_names_safe():
+    """Control characters escaped in what is printed; subjects that clean to one folder name get distinct ones."""
+    from motion.live.outputs import FolderNames, printable
+
+    assert printable("\x1b[2Jred\x07") == "\\x1b[2Jred\\x07" and printable("\u202eevil") == "\\u202eevil"
+    assert printable("a" * 300, 10) == "a" * 10 + "..."
+    names = FolderNames()
+    taken = [names.take(subject, device) for subject, device in
+             [("a/b", "d1"), ("a_b", "d2"), ("A_B", "d3"), ("a_b", "d2"), ("summary.json", "d4"), ("../..", "d5"),
+              ("x" * 300, "d6")]]
+    assert taken[:3] == ["a_b", "a_b-d2", "A_B-d3"] and taken[3] == "a_b-2"
+    assert taken[4] == "summary.json-d4" and taken[5] == "_" and len(taken[6]) == 48
+    assert len({t.lower() for t in taken}) == len(taken)

@@ -251,3 +251,36 @@ def test_dqs_keeps_the_twisted_giraffe_neck_fuller_than_lbs(giraffe):
     assert losses["lbs"][0] > 0.05 and losses["lbs"][1] > 0.03          # LBS collapses the twisted neck
     assert losses["dqs"][0] <= 0.5 * losses["lbs"][0]
     assert losses["dqs"][1] <= 0.5 * losses["lbs"][1]
+
+
+def test_a_fitted_clip_keeps_its_fields_and_poses_the_person(tmp_path, builtin_rig):
+    """A motion.fit clip onto character=human: placement, residual and shape_offset are kept and the meshes
+    are the person's (template + offset) posed; onto the giraffe the offset is dropped, the placement kept."""
+    import dataclasses
+
+    from data.assets import with_shape_offset
+
+    theta = _random_theta(builtin_rig, 3, seed=5)
+    theta[:, 0] = 0.0
+    rng = np.random.default_rng(3)
+    offset = (0.4 * np.sin(builtin_rig.rig.template[:, [1, 2, 0]] / 7.0)).astype(np.float32)
+    rotation = np.stack([np.eye(3)] * 3).astype(np.float32)
+    params = dataclasses.replace(_params(builtin_rig, theta, "builtin"), root_rotation=rotation,
+                                 root_translation=rng.normal(0, 10, (3, 3)), fit_rms_mm=rng.uniform(0, 1, 3),
+                                 shape_offset=offset)
+    save_params(tmp_path / "params.npz", params)
+    _run([f"source={tmp_path / 'params.npz'}", "character=human", f"out_dir={tmp_path / 'human'}"])
+    result = load_params(tmp_path / "human" / "params.npz")
+    for name in ("root_rotation", "root_translation", "fit_rms_mm", "shape_offset"):
+        assert np.array_equal(getattr(result, name), getattr(params, name)), name
+    person = HeadNeckModel(with_shape_offset(builtin_rig.rig, offset))
+    with torch.no_grad():
+        expected = person(theta, torch.as_tensor(params.psi), torch.as_tensor(params.tau),
+                          torch.as_tensor(params.eta)).numpy()
+    written = _read_ply(tmp_path / "human" / "meshes" / "frame_00002.ply")
+    assert np.abs(written - expected[2]).max() < 1e-5 and np.abs(offset).max() > 0.3
+    _run([f"source={tmp_path / 'params.npz'}", "character=giraffe", f"out_dir={tmp_path / 'giraffe'}",
+          "meshes=false"])
+    giraffe = load_params(tmp_path / "giraffe" / "params.npz")
+    assert giraffe.shape_offset is None and np.array_equal(giraffe.root_translation, params.root_translation)
+    assert "shape_offset_dropped" in giraffe.producers

@@ -385,3 +385,52 @@ def test_audio_beside_a_take(tmp_path):
     assert find_audio_beside(mute) is None
     with pytest.raises(InputError, match="no audio stream"):
         read_audio(mute)
+
+
+FAKE_FFMPEG = """#!{python}
+import json, sys
+with open({log!r}, "a") as log:
+    log.write(json.dumps(sys.argv) + "\\n")
+if sys.argv[0].endswith("ffprobe"):
+    print("1" if "csv=p=0" in sys.argv else json.dumps({{"streams": [{{"sample_rate": "16000", "channels": 1}}]}}))
+else:
+    sys.stdout.buffer.write(bytes(4 * 16000))    # one second of float32 silence
+"""
+
+
+def test_ffmpeg_and_ffprobe_get_files_as_absolute_paths(tmp_path, monkeypatch):
+    """A file named ``-y.mp4`` or ``-report.mov`` reaches ffmpeg / ffprobe as a file, never as an option:
+    recorded by stand-in executables on PATH (so this runs without ffmpeg)."""
+    import os
+    import sys
+
+    from data.audio import has_sound
+
+    bin_dir, log = tmp_path / "bin", tmp_path / "argv.jsonl"
+    bin_dir.mkdir()
+    for name in ("ffmpeg", "ffprobe"):
+        (bin_dir / name).write_text(FAKE_FFMPEG.format(python=sys.executable, log=str(log)))
+        (bin_dir / name).chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    for name in ("-y.mp4", "-report.mov"):
+        (work / name).write_bytes(b"not decoded by the stand-ins")
+    audio = read_audio("-y.mp4")
+    assert audio.rate == 16000 and audio.duration == pytest.approx(1.0)
+    assert has_sound(Path("-report.mov"))
+    calls = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [Path(argv[0]).name for argv in calls] == ["ffprobe", "ffmpeg", "ffprobe"]
+    for argv, name in zip(calls, ("-y.mp4", "-y.mp4", "-report.mov")):
+        assert str(work / name) in argv and name not in argv, argv
+        assert not any(arg.startswith("-") and arg.endswith(name) for arg in argv), argv
+
+
+@needs_ffmpeg
+def test_a_file_named_like_an_option_is_decoded(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    write_wav(tmp_path / "a.wav", voiced_signal(glide, 1.0))
+    subprocess.run(["ffmpeg", "-v", "error", "-i", "a.wav", "-c:a", "aac", "./-y.mp4"], check=True)
+    audio = read_audio("-y.mp4")
+    assert audio.rate == RATE and audio.duration == pytest.approx(1.0, abs=0.05)

@@ -1,6 +1,7 @@
 """The compact rig file: :class:`RigData`, every array a head-and-neck rig is, saved and loaded as ``.npz``."""
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
@@ -124,3 +125,20 @@ class RigData:
             return cls(**kwargs, source=str(stored.get("source", path)))
         except InputError as e:
             raise InputError(f"{path}: {e}") from None
+
+
+def with_shape_offset(rig: RigData, offset: np.ndarray | None, source: str = "shape_offset") -> RigData:
+    """The person's rig: a copy of ``rig`` whose template is ``template + offset`` ([N,3] cm, a fitted
+    ``shape_offset``), everything else (joints, weights, expressions, larynx) shared; ``rig`` itself when
+    ``offset`` is None.  InputError naming ``source`` when the offset is not [N,3] finite numbers."""
+    if offset is None:
+        return rig
+    offset = np.asarray(offset)
+    if offset.shape != rig.template.shape:
+        raise InputError(f"{source}: shape_offset of shape {list(offset.shape)}, expected "
+                         f"{list(rig.template.shape)} (one offset per vertex of the rig)")
+    if not np.isfinite(offset).all():
+        vertex = int(np.argwhere(~np.isfinite(offset))[0, 0])
+        raise InputError(f"{source}: shape_offset is not finite at vertex {vertex}")
+    template = (rig.template.astype(np.float64) + offset).astype(rig.template.dtype)
+    return dataclasses.replace(rig, template=template)

@@ -1,5 +1,9 @@
 """Pair files: :class:`LarynxSequence` (expression weights and tau at one rate) saved and loaded as ``.npz``,
 folders of them, and their split into training and validation by take.
+
+A folder may also hold fit (or ``infer.py``) output folders, each with its ``params.npz``
+(``data.params``): each is one take named after its folder, psi reordered by expression name, tau as
+fitted, eta the mean of its ``eta [T]`` (a fit writes one value per sequence, repeated), f0 when present.
 """
 from __future__ import annotations
 
@@ -14,6 +18,7 @@ from base.errors import InputError
 from base.files import save_npz
 from base.timebase import resample_uniform
 from data.expressions import EXPRESSION_NAMES, NUM_EXPRESSIONS, check_weights
+from data.params import ARRAY_KEYS, load_params
 from data.splits import split_by_file
 
 
@@ -81,8 +86,28 @@ def _name(data, key: str, path: Path) -> str | None:
     return str(value.reshape(())) or None
 
 
+def load_fitted_pair(path: str | os.PathLike, take: str | None = None) -> LarynxSequence:
+    """A ``params.npz`` (``data.params``; a ``motion.fit`` or ``infer.py`` output) as one take, named ``take``
+    (default: its folder's name for ``params.npz``, else :func:`take_from_name` of the file's stem)."""
+    path = Path(path)
+    params = load_params(path)
+    missing = [n for n in EXPRESSION_NAMES if n not in params.expression_names]
+    if missing:
+        raise InputError(f"{path}: psi lacks the expressions {missing[:3]}{' ...' if len(missing) > 3 else ''}; "
+                         f"expected HACK's {NUM_EXPRESSIONS}")
+    if len(params) < 2:
+        raise InputError(f"{path}: {len(params)} frame(s), expected at least 2")
+    psi = params.psi[:, [params.expression_names.index(n) for n in EXPRESSION_NAMES]]
+    check_weights(psi, path, EXPRESSION_NAMES)
+    if take is None:
+        take = path.parent.resolve().name if path.name == "params.npz" else take_from_name(path.stem)
+    return LarynxSequence(psi.astype(np.float32), params.tau.astype(np.float32), float(params.fps), None, take,
+                          float(np.mean(params.eta)), take, params.f0)
+
+
 def load_pair(path: str | os.PathLike) -> LarynxSequence:
-    """Read and validate a pair file (its take: the ``take`` entry, else :func:`take_from_name`)."""
+    """Read and validate a pair file (its take: the ``take`` entry, else :func:`take_from_name`); a params
+    file (``data.params``) goes to :func:`load_fitted_pair`."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: file not found")
@@ -91,6 +116,8 @@ def load_pair(path: str | os.PathLike) -> LarynxSequence:
     except Exception as e:  # numpy raises several types for a damaged archive
         raise InputError(f"{path}: not a readable .npz archive ({type(e).__name__}: {e}); expected psi, tau, fps") \
             from None
+    if all(key in data for key in ARRAY_KEYS):
+        return load_fitted_pair(path)
     for key in ("psi", "tau", "fps"):
         if key not in data:
             raise InputError(f"{path}: no '{key}' array (found: {', '.join(sorted(data)) or 'none'}); "
@@ -149,13 +176,16 @@ def save_pair(path: str | os.PathLike, sequence: LarynxSequence, time: np.ndarra
 
 
 def load_pairs(folder: str | os.PathLike, fps: float | None = None) -> list[LarynxSequence]:
-    """Every ``*.npz`` pair file in ``folder`` (sorted by name), resampled to ``fps`` if given."""
+    """Every ``*.npz`` pair file in ``folder`` and every ``<sub folder>/params.npz`` (a fit's output folder,
+    one take named after the sub folder), sorted by name, resampled to ``fps`` if given."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise InputError(f"{folder}: not a folder; expected a folder of pair files (.npz with psi, tau, fps)")
-    files = sorted(folder.glob("*.npz"))
+        raise InputError(f"{folder}: not a folder; expected a folder of pair files (.npz with psi, tau, fps) or of "
+                         "fit folders (each with its params.npz)")
+    files = sorted([*folder.glob("*.npz"), *folder.glob("*/params.npz")])
     if not files:
-        raise InputError(f"{folder}: no .npz pair files; make them with python -m data.pairs")
+        raise InputError(f"{folder}: no .npz pair files and no fit folders (<name>/params.npz); make pair files "
+                         "with python -m data.pairs, fits with python -m motion.fit")
     pairs = [load_pair(f) for f in files]
     return pairs if fps is None else [p.resampled(fps) for p in pairs]
 

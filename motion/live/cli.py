@@ -1,6 +1,6 @@
 """Drive the neck and larynx from the Live Link Face stream: ``python -m motion.live``.
 
-    python -m motion.live [host=0.0.0.0] [port=11111] [out_dir=DIR] [duration=SECONDS] \\
+    python -m motion.live [host=0.0.0.0] [port=11111] [out_dir=DIR] [duration=SECONDS] [allow=[IP,NET/24]] \\
         [checkpoint=default|none|path] [head2neck=default|none|path] [rig=hack_rig.npz] \\
         [viewer=true] [viewer_port=8765] [viewer_host=127.0.0.1]
     python -m motion.live.send take=take.csv [host=127.0.0.1] [port=11111] [speed=1.0]   # no phone at hand
@@ -12,16 +12,22 @@ in the app: Settings -> Live Link -> add a target with this machine's IP address
 phone (device id + subject) gets its own stream: its frames are resampled causally to the larynx model's
 rate (the shipped model: 30 fps; without one, the stream's) as ``infer.py`` resamples, and each output
 frame runs the larynx model's step (tau) and head2neck (theta) as it completes.  Late or out-of-order
-frames are dropped, frame-number gaps interpolated over, weights outside ``data.expressions.WEIGHT_RANGE``
-clamped and counted; datagrams too short, of another version (MetaHuman Animator mode, old apps), with a
-wrong count, bad names, NaN/Inf or absurd values are counted by reason and skipped.
+frames are dropped, gaps follow the gap rule (``base.timebase.GAP_SECONDS``: under 0.25 s interpolated
+over, longer ones held at no cost), weights outside ``data.expressions.WEIGHT_RANGE`` clamped and counted;
+datagrams too short, of another version (MetaHuman Animator mode, old apps), with a field out of range
+(rate 1..240 fps, sub-frame in [0,1), frame of the day), a wrong count, bad names, NaN/Inf or absurd values,
+jumps, from a sender not in ``allow`` or spoofing a bound device id are counted by reason and skipped
+(``motion.live.receiver``).
 
-Stops on Ctrl-C / SIGTERM or after ``duration`` seconds, then writes ``out_dir`` (default
-``runs/live/<time>/``) whole: ``<subject>/params.npz`` (``data.params``, as infer.py writes it),
-``<subject>/capture.csv`` (the frames as a Live Link Face CSV: ``python infer.py expressions=...`` on it
-gives the same params), ``summary.json`` (``rejected`` by reason; per subject ``frames``,
-``missing_frames``, ``latency_ms`` p50/p99/max from receipt to params).  A status line every
-``status_seconds``.  Head angles: ``head_units``, ``*_sign``, ``recenter`` as in ``motion/head2neck/cli.py``.
+The session is written as it goes into ``out_dir`` (default ``runs/live/<time>/``, new):
+``<subject>/capture.csv`` (the frames as a Live Link Face CSV, appended and flushed after every drain of the
+socket: a crash or SIGKILL keeps them; ``python infer.py expressions=...`` on it gives the same params),
+``<subject>/params.npz`` (``data.params``, as infer.py writes it) when the stream closes (stop, idle for
+``idle_seconds``, error), ``summary.json`` at stop (``rejected`` by reason; per subject ``frames``,
+``missing_frames``, ``gaps``, ``latency_ms`` p50/p99/max from receipt to params).  Stops on Ctrl-C / SIGTERM
+or after ``duration`` seconds.  A status line every ``status_seconds``.  Head angles: ``head_units``,
+``*_sign``, ``recenter`` as in ``motion/head2neck/cli.py``.  ``host=0.0.0.0`` listens on every interface
+(docs/tools.md: what that exposes); ``allow=[192.168.1.20,10.0.0.0/24]`` accepts only those senders.
 
 ``viewer=true``: a live view at ``http://viewer_host:viewer_port/`` (default http://127.0.0.1:8765/): the
 character posed by each output frame over a WebSocket, tau and the joint angles as curves
@@ -39,7 +45,7 @@ from base.errors import InputError
 from base.files import atomic_folder, require_new_folder
 from motion.live.config import LiveConfig
 from motion.live.face_feed import FaceFeed, write_feed
-from motion.live.outputs import write_session
+from motion.live.outputs import SessionWriter, write_session
 from motion.live.receiver import LiveReceiver
 from motion.live.stream import StreamOptions
 from motion.live.viewer_server import start_viewer
@@ -60,14 +66,19 @@ def live_models(config: LiveConfig, announce=print) -> Models:
 
 
 def stream_options(config: LiveConfig) -> StreamOptions:
-    return StreamOptions(config.head_units, config.signs, config.recenter, config.eta, config.max_gap_seconds)
+    return StreamOptions(config.head_units, config.signs, config.recenter, config.eta, config.max_gap_seconds,
+                         config.max_lead_seconds)
 
 
 def finish(receiver: LiveReceiver, out_dir: Path, eta: float) -> dict:
-    """Write the session into ``out_dir``, whole or not at all; the summary."""
-    with atomic_folder(out_dir) as staging:
-        return write_session(staging, list(receiver.streams.values()), dict(receiver.rejected), eta,
-                             {"datagrams": receiver.received})
+    """End the session: with a writer (the command), every stream closed (its params.npz) and summary.json
+    written into ``out_dir``; without (tests, the benchmark), the whole session into ``out_dir`` at once."""
+    extra = {"datagrams": receiver.received}
+    if receiver.writer is None:
+        with atomic_folder(out_dir) as staging:
+            return write_session(staging, list(receiver.streams.values()), dict(receiver.rejected), eta, extra)
+    receiver.close_all("stop")
+    return receiver.writer.finish(dict(receiver.rejected), extra)
 
 
 def run_face(config: LiveConfig, models: Models, out_dir: Path, viewer, on_frame) -> dict:
@@ -116,11 +127,13 @@ def run(cfg) -> dict:
         return run_face(config, models, out_dir, viewer, on_frame)
     try:
         receiver = LiveReceiver(models, stream_options(config), config.host, config.port, config.max_phones,
-                                config.absurd_weight, on_frame=on_frame)
+                                config.absurd_weight, on_frame=on_frame, writer=SessionWriter(out_dir, config.eta),
+                                allow=config.allow, idle_seconds=config.idle_seconds)
     except OSError as e:
         if viewer is not None:
             viewer.close()
         raise InputError(f"host={config.host} port={config.port}: cannot listen ({e.strerror or e})") from None
+    out_dir.mkdir(parents=True)  # the session's folder, written as it goes (not a staging folder)
     stop = {"signal": None}
 
     def on_signal(number, _frame):
@@ -129,7 +142,8 @@ def run(cfg) -> dict:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     host, port = receiver.address
     until = f"for {config.duration:g} s" if config.duration else "until Ctrl-C"
-    print(f"live: listening on {host}:{port} (UDP, Live Link Face v6) {until}; writing {out_dir} at the end")
+    print(f"live: listening on {host}:{port} (UDP, Live Link Face v6) {until}; writing {out_dir} as it goes",
+          flush=True)
     failure = None
     try:
         receiver.run(config.duration, lambda: stop["signal"] is not None, config.tick_ms / 1000.0,

@@ -1,10 +1,27 @@
 """The settings of ``python -m motion.live`` (``configs/live.yaml``): the :class:`LiveConfig` schema."""
 from __future__ import annotations
 
+import ipaddress
 from dataclasses import dataclass
 
 from base.cli import register_config
 from motion.head2neck import UNITS
+
+
+def parse_allow(allow) -> list:
+    """``allow`` (an address or network, or a list of them: ``192.168.1.20``, ``10.0.0.0/24``) as
+    ``ipaddress`` networks; ValueError naming the entry that is neither."""
+    if allow is None:
+        return []
+    entries = [allow] if isinstance(allow, str) else list(allow)
+    networks = []
+    for entry in entries:
+        try:
+            networks.append(ipaddress.ip_network(str(entry).strip(), strict=False))
+        except ValueError:
+            raise ValueError(f"allow={entry}: expected an IP address (192.168.1.20) or a network "
+                             f"(192.168.1.0/24)") from None
+    return networks
 
 
 @dataclass
@@ -28,6 +45,9 @@ class LiveConfig:
     recenter: bool = False             # the phone's first frame is the rest pose
     max_phones: int = 8                # streams kept at once (device id + subject); more are refused
     max_gap_seconds: float = 10.0      # a frame-number jump longer than this is refused ("jump"), not filled
+    max_lead_seconds: float = 30.0     # a phone's clock ahead of ours (since its first frame) by more: "ahead"
+    idle_seconds: float = 10.0         # a phone silent this long is closed (written) and frees its slot
+    allow: list[str] | None = None     # accept only these addresses / networks ([192.168.1.20, 10.0.0.0/24])
     absurd_weight: float = 10.0        # a weight beyond +-this refuses the datagram ("absurd")
     status_seconds: float = 5.0        # a status line this often (0: none)
     tick_ms: float = 2.0               # the socket is waited on at most this long between drains
@@ -56,8 +76,11 @@ class LiveConfig:
             raise ValueError(f"duration={self.duration}: expected seconds > 0 (or null: until stopped)")
         if self.camera is not None and self.video is not None:
             raise ValueError(f"camera={self.camera} and video={self.video}: give one source")
-        if self.max_phones < 1 or self.max_gap_seconds <= 0 or self.absurd_weight <= 0 or self.tick_ms <= 0:
-            raise ValueError("max_phones, max_gap_seconds, absurd_weight and tick_ms must be positive")
+        if (self.max_phones < 1 or self.max_gap_seconds <= 0 or self.absurd_weight <= 0 or self.tick_ms <= 0
+                or self.max_lead_seconds <= 0 or self.idle_seconds <= 0):
+            raise ValueError("max_phones, max_gap_seconds, max_lead_seconds, idle_seconds, absurd_weight and "
+                             "tick_ms must be positive")
+        parse_allow(self.allow)  # ValueError naming an entry that is no address or network
 
     @property
     def signs(self) -> tuple[float, float, float]:

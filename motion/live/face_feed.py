@@ -30,7 +30,7 @@ from motion.face.frames import open_video, quiet_stderr
 from motion.face.model import find_face_model, open_landmarker, require_mediapipe
 from motion.face.tracking import ARKIT_INDEX, detect
 from motion.live.outputs import write_session
-from motion.live.packet import EAR_BLENDSHAPES, NUM_WEIGHTS, VALUE_COUNT, Frame
+from motion.live.packet import EAR_BLENDSHAPES, NUM_WEIGHTS, VALUE_COUNT, Frame, PacketError
 from motion.live.stream import PhoneStream, StreamOptions, run_pending
 from motion.pipeline.models import Models
 
@@ -90,7 +90,9 @@ class FaceFeed:
                 raise InputError(f"camera={camera}: no camera there gives frames (is it connected, or busy?)")
             self.capture_path, self.device = int(camera), f"camera{camera}"
         self.rate = (max(1, int(round(fps))), 1)
-        self.options = StreamOptions("rad", (1.0, 1.0, 1.0), recenter, eta, max_gap_seconds=10.0)
+        # a video decodes faster than real time (realtime=false): no bound on its clock's lead
+        self.options = StreamOptions("rad", (1.0, 1.0, 1.0), recenter, eta, max_gap_seconds=10.0,
+                                     max_lead_seconds=float("inf"))
         self.stream = PhoneStream(self.device, SUBJECT, self.rate, models, self.options)
         self.rejected: Counter = Counter()
         self.received = self.produced = 0
@@ -133,7 +135,11 @@ class FaceFeed:
                 frame = Frame(self.device, SUBJECT, number, 0.0, self.rate,
                               frame_values(face[0], face[1], self.ear_index, self.mirror))
                 last_frame = number
-                self.produced += self.stream.accept(frame, received_ns)
+                try:
+                    self.produced += self.stream.accept(frame, received_ns)
+                except PacketError as e:  # e.g. a jump past max_gap_seconds: counted, the feed goes on
+                    self.rejected[e.reason] += 1
+                    continue
                 before = len(self.stream.recorded.tau)
                 run_pending([self.stream], self.models, self.options)
                 if self.on_frame is not None:

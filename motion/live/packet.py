@@ -19,7 +19,6 @@ refused by its version byte; nothing else is guessed.  :func:`encode` is the inv
 """
 from __future__ import annotations
 
-import math
 import struct
 from dataclasses import dataclass
 
@@ -58,7 +57,10 @@ _DRIVEN = HACK_FROM_EAR >= 0
 MAX_NAME_BYTES = 256  # device ids are UUIDs (36 bytes), subjects short names: longer is garbage
 _TIMING = struct.Struct(">ifii")  # frame, sub-frame, rate numerator, denominator
 _VALUES = struct.Struct(f">{VALUE_COUNT}f")
-REASONS = ("too_short", "version", "length", "encoding", "count", "rate", "non_finite", "absurd", "no_face")
+MIN_FPS, MAX_FPS = 1, 240   # the frame rates a datagram may carry (Live Link Face sends 60, 30, 24, ...)
+SECONDS_PER_DAY = 86400    # frame numbers count the timecode of the day
+REASONS = ("too_short", "version", "length", "encoding", "rate", "subframe", "frame", "count", "non_finite",
+           "absurd", "no_face")
 
 
 class PacketError(ValueError):
@@ -135,9 +137,16 @@ def parse(data: bytes, absurd: float = 10.0) -> Frame:
         raise PacketError("too_short", offset, f"{len(data)} bytes, expected {offset + _TIMING.size + 1} "
                                                f"(frame, sub-frame, rate, value count)")
     frame, subframe, numerator, denominator = _TIMING.unpack_from(data, offset)
-    if numerator <= 0 or denominator <= 0 or not math.isfinite(subframe) or frame < 0:
-        raise PacketError("rate", offset, f"frame {frame}, sub-frame {subframe}, rate {numerator}/{denominator}; "
-                                          f"expected a frame >= 0 and a positive rate (60/1)")
+    # each field checked against its range before anything uses it (issue 59): integers compared exactly
+    if not (denominator > 0 and MIN_FPS * denominator <= numerator <= MAX_FPS * denominator):
+        raise PacketError("rate", offset + 8, f"rate {numerator}/{denominator}, expected a frame rate of "
+                                              f"{MIN_FPS}..{MAX_FPS} fps (60/1, 30000/1001)")
+    if not 0.0 <= subframe < 1.0:  # NaN fails too
+        raise PacketError("subframe", offset + 4, f"sub-frame {subframe}, expected 0 <= sub-frame < 1")
+    day = SECONDS_PER_DAY * int(round(numerator / denominator))
+    if not 0 <= frame < day:
+        raise PacketError("frame", offset, f"frame {frame}, expected a timecode frame of the day, "
+                                           f"0..{day - 1} at {numerator}/{denominator} fps")
     offset += _TIMING.size
     count = data[offset]
     if count == 0 and len(data) == offset + 1:

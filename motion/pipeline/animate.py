@@ -9,6 +9,7 @@ import torch
 
 from base.cli import as_list
 from base.errors import InputError
+from base.timebase import GAP_SECONDS, fill_held, grid_segments
 from data.demo_take import DEMO_SOURCE, SWALLOW_ONSET, demo_take
 from data.expressions import EXPRESSION_NAMES, ExpressionTrack, arkit_name, read_expressions
 from data.params import AnimationParams, rig_checksum
@@ -48,6 +49,18 @@ def read_take(cfg: InferConfig, path: str | None, announce=print) -> ExpressionT
     return track
 
 
+def segmented_tau(model, psi: np.ndarray, segment: np.ndarray, held: np.ndarray,
+                  subject: str | None = None) -> np.ndarray:
+    """tau [T] under the gap rule (``base.timebase.grid_segments``): the larynx model run on each run of frames
+    from its initial state, the points inside a gap holding the tau before them."""
+    tau = np.zeros(len(psi))
+    for s in np.unique(segment):
+        points = (segment == s) & ~held
+        if points.any():
+            tau[points] = predict_tau(model, psi[points], subject)
+    return fill_held(tau, held)
+
+
 def head_theta(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=print) -> np.ndarray:
     """Bone-frame theta [T,J,3] from the take's head rotation (zeros without a neck model or rotation)."""
     theta = np.zeros((len(track), models.rig.num_joints, 3), dtype=np.float32)
@@ -81,11 +94,11 @@ def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=p
     seconds = {}
     started = time.perf_counter()
     fps = models.larynx.fps if models.larynx is not None else float(cfg.out_fps or track.fps)
-    uniform = track.resampled(fps)
+    uniform = track.resampled(fps, GAP_SECONDS)  # the gap rule, as the live receiver applies it
     seconds["resample"] = time.perf_counter() - started
     started = time.perf_counter()
     if models.larynx is not None:
-        tau = predict_tau(models.larynx, uniform.psi, cfg.subject)
+        tau = segmented_tau(models.larynx, uniform.psi, *grid_segments(track.time, fps), cfg.subject)
     else:
         tau = np.zeros(len(uniform))
     seconds["larynx"] = time.perf_counter() - started

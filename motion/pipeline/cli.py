@@ -12,6 +12,7 @@ from motion.pipeline.folder import print_summary, run_folder
 from motion.pipeline.models import load_models
 from motion.pipeline.take import run_take
 from scene.fbx import blender_executable
+from scene.usd import require_usd
 
 
 def default_out_dir() -> Path:
@@ -22,6 +23,8 @@ def run(cfg) -> list[dict]:
     config: InferConfig = to_dataclass(cfg, where="infer")
     if "fbx" in config.export:
         blender_executable()  # before any work: one line saying how to install it, exit status 2
+    if "usd" in config.export:
+        require_usd()         # likewise for usd-core
     out_dir = Path(config.out_dir) if config.out_dir else default_out_dir()
     source = Path(config.expressions) if config.expressions is not None else None
     if source is not None and source.is_dir():

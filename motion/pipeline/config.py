@@ -7,9 +7,10 @@ from typing import Any
 from base.cli import register_config
 from motion.swallow import PlaybackConfig
 from scene.fbx import FBX_UNITS
+from scene.usd import USD_FORMATS, USD_UNITS
 
 MESH_FORMATS = ("ply", "obj")
-EXPORTS = ("glb", "mp4", "html", "fbx")
+EXPORTS = ("glb", "mp4", "html", "fbx", "usd")
 
 
 @dataclass
@@ -54,8 +55,11 @@ class InferConfig:
     character: str = "human"           # human | giraffe (built from the rig) | a character file (.npz)
     meshes: bool = False               # one mesh per frame in meshes/
     mesh_format: str = "ply"           # ply | obj
-    export: list[str] = field(default_factory=list)  # glb, mp4, html (viewer.html), fbx (anim.fbx, needs Blender)
+    export: list[str] = field(default_factory=list)  # glb, mp4, html (viewer.html), fbx (anim.fbx, needs Blender),
+    #                                    usd (anim.usdc, UsdSkel: scene.usd)
     fbx_units: str = "cm"              # cm (Unreal, Maya) | m
+    usd_format: str = "usdc"           # usdc | usda (text) | usdz (Apple's Quick Look): anim.<usd_format>
+    usd_units: str = "cm"              # cm (metersPerUnit 0.01) | m
     plot: bool = True
     workers: int = 1                   # takes of a folder run in this many processes
     threads: int = 1                   # torch threads per process (per-frame decoding runs on one)
@@ -67,6 +71,10 @@ class InferConfig:
             raise ValueError(f"mesh_format={self.mesh_format}: expected one of {', '.join(MESH_FORMATS)}")
         if self.fbx_units not in FBX_UNITS:
             raise ValueError(f"fbx_units={self.fbx_units}: expected one of {', '.join(FBX_UNITS)}")
+        if self.usd_format not in USD_FORMATS:
+            raise ValueError(f"usd_format={self.usd_format}: expected one of {', '.join(USD_FORMATS)}")
+        if self.usd_units not in USD_UNITS:
+            raise ValueError(f"usd_units={self.usd_units}: expected one of {', '.join(USD_UNITS)}")
         unknown = [e for e in self.export if e not in EXPORTS]
         if unknown:
             raise ValueError(f"export={unknown}: expected some of {', '.join(EXPORTS)}")

@@ -1,5 +1,5 @@
 """The files of one take: params.npz / params.csv, the plot, per-frame meshes, anim.glb, preview.mp4,
-viewer.html and anim.fbx."""
+viewer.html, anim.fbx and anim.usdc (.usda, .usdz)."""
 from __future__ import annotations
 
 import time
@@ -11,24 +11,32 @@ import torch
 from base.files import write_csv
 from base.plots import figure, save_figure
 from base.progress import progress_bar
+from base.rotations import matrix_to_axis_angle
 from data.mesh_io import write_obj, write_ply
 from data.params import AnimationParams, load_params, save_params
 from models.rig import HeadNeckModel
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models
+from scene.characters import person_rig
 from scene.fbx import export_fbx
 from scene.gltf import export_glb
 from scene.preview import Panel, anatomical_degrees, write_preview
+from scene.usd import export_usd
 from scene.viewer import build_viewer
 
 
 def write_params_csv(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
     """One row a frame: time, tau, eta, (with audio: f0 in Hz, 0 = unvoiced, and tau_voice, the voice's share
-    of tau), the 55 weights, and each joint's bone-frame axis-angle (rad)."""
+    of tau; from a fit: fit_rms_mm, the placement's translation root_t{x,y,z} in cm and rotation root_r{x,y,z}
+    as axis-angle radians), the 55 weights, and each joint's bone-frame axis-angle (rad)."""
     columns = {"frame": np.arange(len(params)), "time": params.time, "tau": params.tau, "eta": params.eta}
-    for name in ("f0", "tau_voice"):
+    for name in ("f0", "tau_voice", "fit_rms_mm"):
         if getattr(params, name) is not None:
             columns[name] = getattr(params, name)
+    if params.root_rotation is not None:
+        root = matrix_to_axis_angle(torch.as_tensor(params.root_rotation, dtype=torch.float64)).numpy()
+        columns.update({f"root_t{axis}": params.root_translation[:, a] for a, axis in enumerate("xyz")})
+        columns.update({f"root_r{axis}": root[:, a] for a, axis in enumerate("xyz")})
     columns.update({name: params.psi[:, k] for k, name in enumerate(params.expression_names)})
     for j, joint in enumerate(params.joint_names):
         for a, axis in enumerate("xyz"):
@@ -76,8 +84,10 @@ def plot_voice(axis, params: AnimationParams) -> None:
 @torch.no_grad()
 def write_meshes(folder: Path, rig: HeadNeckModel, params: AnimationParams, mesh_format: str = "ply",
                  batch: int = 64) -> int:
-    """Pose the rig for every frame and write ``frame_00000.<mesh_format>`` ... into ``folder``."""
+    """Pose the rig for every frame and write ``frame_00000.<mesh_format>`` ... into ``folder`` (``rig``: the
+    base rig; a fitted ``params.shape_offset`` is applied, ``scene.characters.person_rig``)."""
     folder.mkdir(parents=True, exist_ok=True)
+    rig = person_rig(rig, params)
     faces = rig.faces.numpy()
     count = len(params)
     with progress_bar(total=count, desc="meshes", unit="frame", disable=count < 64) as progress:
@@ -146,4 +156,10 @@ def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, fol
         report = export_fbx(params, rig, folder / "anim.fbx", cfg.fbx_units, glb=glb, take=take)
         report_line(report)
         seconds["fbx"] = time.perf_counter() - started
+    if "usd" in cfg.export:
+        started = time.perf_counter()
+        report = export_usd(params, rig, folder / f"anim.{cfg.usd_format}", cfg.usd_units,
+                            source=str(params.producers["source"]))
+        report_line(report)
+        seconds["usd"] = time.perf_counter() - started
     return seconds

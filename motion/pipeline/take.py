@@ -46,7 +46,7 @@ def run_take(cfg: InferConfig, models: Models, path: str | None, out_dir: Path, 
     if audio is not None and cfg.audio is None:
         announce(f"{track.source}: audio {audio} (the file beside the take; audio=none ignores it)")
     params, seconds = animate(cfg, models, track, announce, audio=audio)
-    with atomic_folder(out_dir) as staging:
+    with atomic_folder(out_dir, announce) as staging:
         if track.tracked is not None:  # a face video: the frames with and without a face
             write_face_frames(staging / FACE_FRAMES_FILE, track)
         if models.character is not None:

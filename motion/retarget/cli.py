@@ -1,7 +1,7 @@
 """Retarget head-and-neck motion from one character to another: ``python -m motion.retarget``.
 
     python -m motion.retarget source=params.npz character=giraffe out_dir=giraffe_clip/ [rig=hack_rig.npz]
-        [skinning=lbs|dqs] [mesh_format=ply|obj] [export=[glb,html,fbx]] [fbx_units=cm|m]
+        [skinning=lbs|dqs] [mesh_format=ply|obj] [export=[glb,html,fbx,usd]] [fbx_units=cm|m]
         [gains=auto|unit|giraffe] [clamp=true]
     python -m motion.retarget mode=picture character=giraffe [rig=hack_rig.npz] out=docs/human_giraffe_poses.png
 
@@ -20,12 +20,18 @@ clamped to the target's limits, and brought into the target's bone frames (``fro
 unit gains and no clamping the anatomical rotations are carried over exactly.  psi goes by expression
 name; tau (UV units of the larynx map, which the giraffe keeps) and eta carry over as they are.
 
+A fitted clip (``motion.fit``) keeps its placement (``root_rotation``, ``root_translation``) and
+``fit_rms_mm``; its ``shape_offset`` (the person's rest mesh) carries over onto ``character=human`` only,
+and the meshes and exports pose that person (``scene.characters.person_rig``).
+
 Outputs in ``out_dir``: ``params.npz`` for the target (theta in the target's bone frames, its head
 rotation, ``rig`` = the target's rig file, with its checksum: ``character.npz`` written here when the
 character is built on the fly), ``meshes/frame_00000.ply`` ... (``mesh_format=obj`` with UVs), and
 ``animation.glb`` with ``export=[glb]`` (``scene.gltf.export_glb``; glTF viewers skin linearly, so the GLB
 is LBS whatever ``skinning`` is), ``viewer.html`` with ``export=[html]`` (``scene.viewer``: the clip in a browser,
-offline), ``animation.fbx`` with ``export=[fbx]`` (``scene.fbx``: needs Blender).
+offline), ``animation.fbx`` with ``export=[fbx]`` (``scene.fbx``: needs Blender), ``animation.usdc`` with
+``export=[usd]`` (``scene.usd``: UsdSkel; ``usd_format=usda|usdz`` for ``animation.usda``/``.usdz``;
+``usd_units=cm|m``).
 
 Giraffe gains (:data:`GIRAFFE_GAINS`): giraffes move the neck mostly at its base; the joint between the
 first and second thoracic vertebrae is the fulcrum of giraffe neck motion (Gunji & Endo, "Functional
@@ -60,6 +66,7 @@ from motion.retarget.transfer import GAIN_CHOICES, default_gains, retarget_param
 from scene.characters import GiraffeSettings, load_character
 from scene.fbx import FBX_UNITS, blender_executable, export_fbx
 from scene.gltf import export_glb
+from scene.usd import USD_FORMATS, USD_UNITS, export_usd, require_usd
 from scene.viewer import build_viewer
 
 MODES = ("retarget", "picture")
@@ -73,7 +80,8 @@ class RetargetConfig:
     -> out); source: params.npz; out_dir: the output folder (fresh or empty); character: human | giraffe |
     a character .npz; rig: the source rig (default: the one recorded in source; builtin or a rig file);
     skinning: lbs | dqs; meshes: write posed meshes; mesh_format: ply | obj; export: glb (the GLB), html (viewer.html),
-    fbx (animation.fbx through Blender; fbx_units cm | m);
+    fbx (animation.fbx through Blender; fbx_units cm | m), usd (animation.<usd_format>: usdc | usda | usdz;
+    usd_units cm | m);
     gains: auto (the giraffe's on a giraffe) | unit | giraffe; joint_gains: explicit gains, 8 (one per
     joint) or 24 (joint-major, flexion/axial/lateral) numbers, overriding ``gains``; clamp: clamp to the
     target's limits (None: when gains apply); limit_margin: scales the limits; batch: frames posed at once;
@@ -91,6 +99,8 @@ class RetargetConfig:
     mesh_format: str = "ply"
     export: list[str] = field(default_factory=list)
     fbx_units: str = "cm"
+    usd_format: str = "usdc"
+    usd_units: str = "cm"
     gains: str = "auto"
     joint_gains: list[float] | None = None
     clamp: bool | None = None
@@ -110,9 +120,13 @@ class RetargetConfig:
                                     ("mesh_format", self.mesh_format, MESH_FORMATS)):
             if value not in choices:
                 raise ValueError(f"{key}={value}: expected one of {', '.join(choices)}")
-        unknown = [e for e in self.export if e not in ("glb", "html", "fbx")]
+        unknown = [e for e in self.export if e not in ("glb", "html", "fbx", "usd")]
         if unknown:
-            raise ValueError(f"export={list(self.export)}: expected some of glb, html, fbx")
+            raise ValueError(f"export={list(self.export)}: expected some of glb, html, fbx, usd")
+        for key, value, choices in (("usd_format", self.usd_format, USD_FORMATS),
+                                    ("usd_units", self.usd_units, USD_UNITS)):
+            if value not in choices:
+                raise ValueError(f"{key}={value}: expected one of {', '.join(choices)}")
         if self.fbx_units not in FBX_UNITS:
             raise ValueError(f"fbx_units={self.fbx_units}: expected one of {', '.join(FBX_UNITS)}")
         if self.joint_gains is not None and len(self.joint_gains) not in (8, 24):
@@ -155,12 +169,15 @@ def run(cfg) -> AnimationParams | None:
 
     if "fbx" in settings.export:
         blender_executable()  # before any work: one line saying how to install it, exit status 2
+    if "usd" in settings.export:
+        require_usd()         # likewise for usd-core
     started = timer.perf_counter()
     params = load_params(settings.source)
     source, source_label = source_rig(params, settings.source, settings.rig)
     if settings.skinning == "dqs" and not supports_skinning(source, "dqs"):
         raise InputError("skinning=dqs: this version of models.rig has no dual-quaternion skinning yet")
-    out_dir = fresh_output_folder(settings.out_dir, ("params.npz", "character.npz", "meshes", "*.glb"), "out_dir")
+    out_dir = fresh_output_folder(settings.out_dir, ("params.npz", "character.npz", "meshes", "*.glb", "*.usd?"),
+                                  "out_dir")
     if settings.character == "human":
         target, label = source, source_label
     else:
@@ -198,6 +215,9 @@ def run(cfg) -> AnimationParams | None:
         glb = out_dir / "animation.glb" if "glb" in settings.export else None
         lines.append(export_fbx(result, target, out_dir / "animation.fbx", settings.fbx_units, glb=glb,
                                 take=out_dir.name).summary())
+    if "usd" in settings.export:
+        lines.append(export_usd(result, target, out_dir / f"animation.{settings.usd_format}", settings.usd_units,
+                                source=str(out_dir / "params.npz")).summary())
     lines.append(f"done in {timer.perf_counter() - started:.1f} s")
     print("\n".join(lines))
     return result

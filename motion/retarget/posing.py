@@ -12,6 +12,7 @@ from base.errors import InputError
 from data.mesh_io import write_obj, write_ply
 from data.params import AnimationParams
 from models.rig import HeadNeckModel
+from scene.characters import person_rig
 
 SKINNINGS = ("lbs", "dqs")
 MESH_FORMATS = ("ply", "obj")
@@ -28,12 +29,14 @@ def pose(rig: HeadNeckModel, params: AnimationParams, skinning: str = "lbs", bat
          frames: np.ndarray | None = None) -> Iterator[tuple[int, torch.Tensor]]:
     """Posed vertices of ``params`` on ``rig`` in batches: yields (first frame, vertices [B,N,3] cm).
 
+    rig: the base rig (a fitted ``params.shape_offset`` is added to its template here, ``person_rig``);
     skinning: lbs | dqs (InputError if the rig has no dual-quaternion skinning).
     """
     if skinning not in SKINNINGS:
         raise InputError(f"skinning={skinning}: expected one of {', '.join(SKINNINGS)}")
     if not supports_skinning(rig, skinning):
         raise InputError(f"skinning={skinning}: this version of models.rig has no dual-quaternion skinning yet")
+    rig = person_rig(rig, params)
     extra = {"skinning": skinning} if "skinning" in inspect.signature(rig.forward).parameters else {}
     frames = np.arange(len(params)) if frames is None else np.asarray(frames)
     for start in range(0, len(frames), batch):

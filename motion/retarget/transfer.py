@@ -9,7 +9,7 @@ import torch
 from base.errors import InputError
 from base.rotations import axis_angle_to_euler, euler_to_axis_angle
 from data.joint_limits import RANGES_DEG, euler_limits
-from data.params import AnimationParams, rig_checksum
+from data.params import AnimationParams, fit_fields, rig_checksum
 from models.rig import HeadNeckModel
 from scene.characters import character_kind
 
@@ -90,7 +90,9 @@ def retarget_params(params: AnimationParams, source: HeadNeckModel, target: Head
                     source_name: str = "params") -> AnimationParams:
     """``params`` (in ``source``'s bone frames) for ``target``: theta retargeted (:func:`retarget_theta`),
     clamped to the target's limits when ``clamp`` (None: when gains are given), psi by expression name,
-    tau and eta as they are; ``rig_label`` names the target's rig in the result (with its checksum)."""
+    tau and eta as they are; ``rig_label`` names the target's rig in the result (with its checksum).  A fit's
+    placement and residual carry over; its ``shape_offset`` (the person's rest mesh) only onto the same rig
+    (``character=human``): another character has its own rest shape."""
     clamp = gains is not None if clamp is None else clamp
     limits = character_limits(target, margin) if clamp else None
     with torch.no_grad():
@@ -104,8 +106,12 @@ def retarget_params(params: AnimationParams, source: HeadNeckModel, target: Head
     order = [params.expression_names.index(n) for n in target.expression_names]
     producers = dict(params.producers)
     producers.update({"tool": "motion.retarget", "retargeted_from": params.rig})
+    checksum = rig_checksum(target.rig)
+    same_rig = checksum == rig_checksum(source.rig)
+    if params.shape_offset is not None and not same_rig:
+        producers["shape_offset_dropped"] = "the fitted person's shape belongs to the source rig"
     return AnimationParams(time=params.time, fps=params.fps, psi=params.psi[:, order], tau=params.tau, eta=params.eta,
                            theta=theta.numpy(), head_rotation=head, joint_names=target.joint_names,
                            expression_names=target.expression_names, rig=rig_label,
-                           rig_checksum=rig_checksum(target.rig), producers=producers, f0=params.f0,
-                           tau_voice=params.tau_voice)
+                           rig_checksum=checksum, producers=producers, f0=params.f0,
+                           tau_voice=params.tau_voice, **fit_fields(params, shape=same_rig))

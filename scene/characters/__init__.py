@@ -11,7 +11,8 @@ vertebrae; HACK's eight joints c7t1 ... oc1 are the joints between them, T1 and 
 - :func:`load_character` (:mod:`scene.characters.loading`): a rig file, ``human`` (the source rig itself),
   ``giraffe`` (built here), or an OBJ with the template's topology plus a joints JSON in the release's
   ``bones_neutral.json`` layout (:func:`character_from_obj`; an artist's own character, as the paper's
-  giraffe); :func:`resolve_rig`: the rig (or character) a params file drives.
+  giraffe); :func:`resolve_rig`: the rig (or character) a params file drives; :func:`person_rig`: that rig
+  with the params' fitted ``shape_offset`` (``motion.fit``) on its template, what every exporter poses.
 - :func:`build_giraffe`: the giraffe, from any rig (built-in or the real release); how and why:
   :mod:`scene.characters.giraffe` (its rest shape: :mod:`scene.characters.giraffe_shape`).
 - :func:`deformation_transfer` (:mod:`scene.characters.transfer`) moves the expression and identity shapes
@@ -34,6 +35,7 @@ from scene.characters.loading import (
     character_from_obj,
     character_kind,
     load_character,
+    person_rig,
     read_joints_json,
     resolve_rig,
 )
@@ -42,6 +44,7 @@ from scene.characters.transfer import ZERO_DELTA_CM, deformation_transfer
 __all__ = [
     "CHARACTER_NAMES", "GIRAFFE_TAG", "HEAD_WEIGHT", "ZERO_DELTA_CM", "CharactersConfig", "GiraffeGeometry",
     "GiraffeSettings", "build_giraffe", "chain_length", "chain_weights", "character_from_obj", "character_kind",
-    "deformation_transfer", "giraffe_geometry", "load_character", "new_self_intersections", "read_joints_json",
+    "deformation_transfer", "giraffe_geometry", "load_character", "new_self_intersections", "person_rig",
+    "read_joints_json",
     "resolve_rig", "rest_world", "run", "self_intersections",
 ]

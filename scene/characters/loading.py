@@ -1,5 +1,6 @@
 """Loading characters: a rig file, ``human``, ``giraffe`` (built), or an OBJ with the template's topology
-plus a joints JSON; and the rig (or character) a params file drives (:func:`resolve_rig`)."""
+plus a joints JSON; the rig (or character) a params file drives (:func:`resolve_rig`), and the person's rig
+when the params carry a fitted shape (:func:`person_rig`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -10,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from base.errors import InputError, require_file
-from data.assets import RigData, rest_transforms_from_bones
+from data.assets import RigData, rest_transforms_from_bones, with_shape_offset
 from data.mesh_io import read_obj, triangulate
 from data.params import AnimationParams, check_rig, rig_path
 from models.rig import HeadNeckModel
@@ -126,3 +127,13 @@ def resolve_rig(params: AnimationParams, source: str | os.PathLike, rig: str | N
     model = HeadNeckModel(load_character(character, HeadNeckModel.from_config(rig).rig))
     check_rig(params, model.rig, source, key)
     return model
+
+
+def person_rig(model: HeadNeckModel, params: AnimationParams, source: str | os.PathLike = "params") -> HeadNeckModel:
+    """The rig that poses ``params`` as the person they were fitted to: ``model`` (the BASE rig, the one
+    ``params.rig_checksum`` names) with ``params.shape_offset`` added to its template
+    (``data.assets.with_shape_offset``), or ``model`` itself when the params carry no shape.  Every
+    exporter calls it with the base rig, so a fitted person exports as that person."""
+    if params.shape_offset is None:
+        return model
+    return HeadNeckModel(with_shape_offset(model.rig, params.shape_offset, str(source)), skinning=model.skinning)

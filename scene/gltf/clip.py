@@ -12,6 +12,7 @@ from base.errors import InputError
 from base.rotations import axis_angle_to_matrix, matrix_to_quaternion
 from data.params import AnimationParams, check_rig
 from models.rig import HeadNeckModel
+from scene.characters import person_rig
 from scene.gltf.mesh import METRES_PER_CM, Influences, SeamSplit, shape_normals, skin_influences, split_uv_seams
 from scene.gltf.morphs import (
     DEFAULT_LARYNX_ERROR_CM,
@@ -112,8 +113,11 @@ def export_data(params: AnimationParams, rig: HeadNeckModel, max_influences: int
                 larynx_error_cm: float = DEFAULT_LARYNX_ERROR_CM, source: str = "params",
                 morph_normals: bool = True) -> tuple[ExportData, Influences, LarynxTargets, np.ndarray]:
     """Everything :func:`export_glb` stores, as arrays: (ExportData, Influences, LarynxTargets, corrective
-    feature indices [C]); ``normal_targets`` empty without ``morph_normals``."""
+    feature indices [C]); ``normal_targets`` empty without ``morph_normals``.  ``rig``: the base rig (checked
+    against the params' checksum); a fitted ``params.shape_offset`` is added to its template
+    (``scene.characters.person_rig``)."""
     times = check_params(params, rig, source)
+    rig = person_rig(rig, params, source)
     if not larynx_error_cm > 0:
         raise InputError(f"larynx_error_cm={larynx_error_cm}: expected a positive bound in cm")
     data = rig.rig

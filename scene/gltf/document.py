@@ -15,6 +15,7 @@ import pygltflib as gl
 from base.files import atomic_path
 from data.params import AnimationParams
 from models.rig import HeadNeckModel
+from scene.characters import person_rig
 from scene.gltf.clip import ExportData, export_data, export_error_cm
 from scene.gltf.morphs import DEFAULT_LARYNX_ERROR_CM
 
@@ -207,7 +208,8 @@ def export_glb(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
 
     Args:
         params: the per-frame inputs (``data.params.AnimationParams``) in the rig's bone frames.
-        rig: the rig they drive.
+        rig: the rig they drive (the base rig: a fitted ``params.shape_offset`` is added to its template here,
+            ``scene.characters.person_rig``).
         max_influences: 8 (JOINTS_0 + JOINTS_1) or 4 (engines limited to four; costs the reported error).
         larynx_error_cm: bound on the larynx morph-target interpolation error.
         check: evaluate the stored data at every frame against ``rig(...)`` (``ExportReport.max_error_cm``);
@@ -239,5 +241,5 @@ def export_glb(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
         larynx_error_cm=larynx.error_cm, bytes=len(raw))
     report.seconds = timer.perf_counter() - started
     if check or influences.truncated:  # dropping influences always reports what it costs
-        report.max_error_cm = export_error_cm(export, rig, params)
+        report.max_error_cm = export_error_cm(export, person_rig(rig, params, source), params)
     return report

@@ -16,6 +16,7 @@ from base.errors import InputError
 from base.files import atomic_path
 from data.params import AnimationParams
 from models.rig import HeadNeckModel
+from scene.characters import person_rig
 from scene.preview.strip import Strip, make_strip
 from scene.preview.view import SHADINGS, framing_camera, posed_vertices, shade
 from scene.render import Camera, outward_faces, render_normals
@@ -42,6 +43,7 @@ class Panel:
         if size < 32 or size % 2:
             raise InputError(f"size={size}: expected an even number of pixels >= 32")
         strip_height = 2 * int(round(size * STRIP_FRACTION / 2))
+        rig = person_rig(rig, params, str(params.producers.get("source", "params")))  # a fitted person's shape
         return cls(rig, params, framing_camera(rig, params, view, size),
                    outward_faces(rig.template, rig.faces.numpy()),
                    make_strip(rig, params, size, strip_height) if strip else None, shading)

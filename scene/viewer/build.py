@@ -46,7 +46,8 @@ class ViewerReport:
 
 
 def glb_bytes(params: AnimationParams, rig: HeadNeckModel, source: str = "params") -> bytes:
-    """The binary glTF of the clip as :func:`scene.gltf.export_glb` writes it (built in memory)."""
+    """The binary glTF of the clip as :func:`scene.gltf.export_glb` writes it (built in memory; the params'
+    ``shape_offset`` applied to the base ``rig``, ``export_data``)."""
     export, _, larynx, _ = export_data(params, rig, source=source)
     extras = {"units": "metre", "source_units": "cm", "up": "+y", "forward": "+z", "fps": float(params.fps),
               "rig": params.rig, "rig_checksum": params.rig_checksum, "producers": json.dumps(params.producers),
