@@ -120,11 +120,11 @@ def test_shape_offset_absorbs_another_person(builtin_rig):
     with_shape = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(fit_shape=True, **FAST))
     without = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(**FAST))
     assert with_shape.shape_offset.shape == (builtin_rig.num_vertices, 3) and without.shape_offset is None
-    assert joint_error_deg(with_shape, truth) < 0.5 * joint_error_deg(without, truth)
+    assert joint_error_deg(with_shape, truth) < 0.8 * joint_error_deg(without, truth)
     offset_model = HeadNeckModel(builtin_rig.rig.__class__(**{**builtin_rig.rig.__dict__,
                                                               "template": builtin_rig.rig.template
                                                               + with_shape.shape_offset}))
-    assert vertex_rms_mm(offset_model, with_shape, truth) < 1.0 < vertex_rms_mm(builtin_rig, without, truth)
+    assert vertex_rms_mm(offset_model, with_shape, truth) < 0.3 * vertex_rms_mm(builtin_rig, without, truth)
 
 
 def test_bad_input_names_the_frame(builtin_rig):
@@ -139,3 +139,23 @@ def test_bad_input_names_the_frame(builtin_rig):
         fit_scans(builtin_rig, clouds)
     with pytest.raises(InputError, match=r"frame 0 has shape \[500, 2\]"):
         fit_scans(builtin_rig, [np.zeros((500, 2))])
+
+
+def test_fit_scans_finds_a_turned_half_head(builtin_rig):
+    # Not data.fit_captures' scanner: the face's half of the posed vertices plus 3 % strays in a 30 cm box,
+    # the capture turned by 50 degrees about a skew axis (a flipped head scored best with point-to-point ICP).
+    truth = sequence(builtin_rig, 2, seed=3, noise_cm=0.0)
+    axis = torch.tensor([1.0, 2.0, -1.5]) / math.sqrt(7.25)
+    turn = axis_angle_to_matrix(math.radians(50.0) * axis[None])[0]
+    with torch.no_grad():
+        posed = builtin_rig(truth["theta"], truth["psi"], truth["tau"], torch.full((2,), truth["eta"]))
+        head = turn @ builtin_rig.head_rotation(truth["theta"])
+    rng = np.random.default_rng(4)
+    clouds = []
+    for vertices, facing in zip((posed @ turn.T + torch.tensor([12.0, -40.0, 150.0])).numpy(), head.numpy()):
+        centre = vertices.mean(0)
+        front = vertices[(vertices - centre) @ facing[:, 2] > 0]
+        clouds.append(np.concatenate([front, centre + rng.uniform(-15, 15, (len(front) // 33, 3))]))
+    result = fit_scans(builtin_rig, clouds, FitSettings(scan_points=2000, **FAST))
+    fitted = torch.tensor(result.root_rotation) @ builtin_rig.head_rotation(torch.tensor(result.theta))
+    assert math.degrees(float(relative_angle(fitted, head).max())) < 3.0

@@ -12,7 +12,7 @@ folded into every bone's rest-to-posed transform; the skin weights sum to 1) and
 (``models.rig.skinning.pose_vertices``) with the placement on top.
 
 The Jacobian uses the structure instead of differentiating the whole mesh: the [J,12] transforms are
-differentiated in (r, t, theta) by forward-mode autograd (a few hundred numbers), blended by the skin weights
+differentiated in (r, t, theta) by central differences (a few hundred numbers), blended by the skin weights
 in one product and applied to ``[x_n; 1]``; psi, tau and eta enter the rest shape linearly (tau through the
 larynx map, differentiated by a jvp), so their columns are the blended 3x3 applied to the basis.  The
 pose correctives' dependence on theta (none in the release) is left out of the Jacobian (the residual keeps

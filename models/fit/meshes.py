@@ -60,9 +60,9 @@ def fit_weighted_meshes(model: HeadNeckModel, targets: torch.Tensor, weights: to
     seen = lower_neck if weights is None else lower_neck * weights.float().mean(0)
     rotation, translation = kabsch(model.template.float(), targets, seen)
     state = initial_state(model, rotation, translation)
-    shape_step = None
+    shape = None
     if settings.fit_shape:
         from models.fit.shape import ShapeOffset
 
-        shape_step = ShapeOffset(model, settings).step
-    return fit_sequence(model, MeshData(targets, weights), state, settings, progress, shape_step)
+        shape = ShapeOffset(model, settings)
+    return fit_sequence(model, MeshData(targets, weights), state, settings, progress, shape)

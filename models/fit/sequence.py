@@ -50,14 +50,15 @@ def initial_state(model: HeadNeckModel, rotation: torch.Tensor, translation: tor
 
 
 def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings,
-                 progress: Callable[[int], None] | None = None,
-                 shape_step: Callable[[Solver, State], State] | None = None) -> FitResult:
-    """The coarse-to-fine stages from ``state``; ``shape_step`` (the offset's update) runs after each step
-    of the last stage."""
+                 progress: Callable[[int], None] | None = None, shape=None) -> FitResult:
+    """The coarse-to-fine stages from ``state``; ``shape`` (``models.fit.shape.ShapeOffset``, or None) updates
+    the offset after each step of the last stage."""
     started = time.perf_counter()
     lin = RigLinearisation(model)
     T = len(state.rigid)
     solver = Solver(lin, settings, data, T, progress)
+    if shape is not None:
+        solver.extra_energy = shape.energy
     lay = lin.layout
     placement, neck, everything = (np.zeros(lay.size, bool) for _ in range(3))
     placement[lay.rotation] = placement[lay.translation] = True
@@ -74,7 +75,7 @@ def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings
     stages = (("placement", placement, False), ("neck", neck, False), ("all", everything, True))
     for (name, mask, with_eta), first, count in zip(stages, offsets, iterations):
         if count:
-            after = (lambda s: shape_step(solver, s)) if (shape_step is not None and name == "all") else None
+            after = (lambda s: shape.step(solver, s)) if (shape is not None and name == "all") else None
             state = solver.run_stage(state, mask, count, scales[first: first + count], with_eta, name, after)
     rms = final_rms(lin, data, state, settings)
     solver._passes_done = solver._passes_total

@@ -70,6 +70,7 @@ class Solver:
         self.limits = (lower[1:], upper[1:])
         self.axes = lin.model.anatomical_axes[1:].float()
         self.neck = self.neck_matrix()
+        self.extra_energy: Callable[[State], float] | None = None   # the shape offset's prior, when fitted
         self._passes_total = 1
         self._passes_done = 0
 
@@ -128,7 +129,11 @@ class Solver:
                 w = weights * geman_mcclure(squared, robust_cm) * inv_noise2   # [b,n]
             total = weights.sum(1).clamp_min(1e-9)
             rms[index] = (((weights * squared).sum(1) / total).sqrt()).double().numpy()
-            energy[index] = (w * squared).sum(1).double().numpy()
+            if getattr(self.data, "robust_inside", False):
+                energy[index] = (w * squared).sum(1).double().numpy()
+            else:   # Geman-McClure's rho, r^2 s^2 / (r^2 + s^2), whose gradient the IRLS weights give
+                rho_gm = squared * robust_cm**2 / (robust_cm**2 + squared)
+                energy[index] = (weights * inv_noise2 * rho_gm).sum(1).double().numpy()
             # The information-weighted residual A (q - y): A = w I (meshes) or w (n n^T + share I) (scans).
             if normals is None:
                 rho = w[..., None] * diff
@@ -352,6 +357,7 @@ class Solver:
         weights = self.temporal_weights()
         started = time.perf_counter()
         previous = None
+        reverted = False
         k = 0
         attempts = 0
         while k < iterations and attempts < 3 * iterations:
@@ -365,14 +371,17 @@ class Solver:
             eL = eL + np.einsum("ti,ij,tj->t", theta, self.neck, theta)
             x = self.flat(state)
             total = (data_energy.sum() + eL.sum() + self.temporal_energy(x, weights)
-                     + self.psi_terms(state)[2].sum())
+                     + self.psi_terms(state)[2].sum() + (self.extra_energy(state) if self.extra_energy else 0.0))
             worse = not np.isfinite(total) or (previous is not None and total > previous[0] * (1 + 1e-6)
                                                and previous[2] == robust_cm)
             if worse and previous is not None:
                 state = previous[1]          # the step made it worse: back, more damping, and again
                 self.damping *= 10
+                reverted = True
                 continue
-            self.damping = max(self.damping / 3, 1e-7)
+            if not reverted:                 # an accepted step (not the re-evaluation after a rejected one)
+                self.damping = max(self.damping / 3, 1e-7)
+            reverted = False
             self.data_hessian = H.copy()
             H += HL
             g += gL + self.temporal_gradient(x, weights)
