@@ -49,11 +49,10 @@ from models.fit import FitSettings, fit_meshes, fit_scans
 from models.rig import HeadNeckModel
 from motion.fit.inputs import KINDS, UNITS_CM, read_capture
 from motion.fit.outputs import fit_params, fit_report, plot_fit, summary_lines, write_report
-from motion.pipeline.config import EXPORTS, MESH_FORMATS, InferConfig
+from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models
 from motion.pipeline.outputs import write_outputs
-from scene.fbx import FBX_UNITS, blender_executable
-from scene.usd import USD_FORMATS, USD_UNITS
+from scene.fbx import blender_executable
 
 
 @dataclass
@@ -85,17 +84,13 @@ class FitCli:
             raise ValueError(f"units={self.units}: expected one of {', '.join(UNITS_CM)}")
         if not self.fps > 0:
             raise ValueError(f"fps={self.fps}: expected a positive frame rate")
-        if self.mesh_format not in MESH_FORMATS:
-            raise ValueError(f"mesh_format={self.mesh_format}: expected one of {', '.join(MESH_FORMATS)}")
-        unknown = [e for e in self.export if e not in EXPORTS]
-        if unknown:
-            raise ValueError(f"export={unknown}: expected some of {', '.join(EXPORTS)}")
-        if self.fbx_units not in FBX_UNITS:
-            raise ValueError(f"fbx_units={self.fbx_units}: expected one of {', '.join(FBX_UNITS)}")
-        if self.usd_format not in USD_FORMATS:
-            raise ValueError(f"usd_format={self.usd_format}: expected one of {', '.join(USD_FORMATS)}")
-        if self.usd_units not in USD_UNITS:
-            raise ValueError(f"usd_units={self.usd_units}: expected one of {', '.join(USD_UNITS)}")
+        self.outputs()   # the outputs' settings are infer.py's and checked there (mesh_format, export, units)
+
+    def outputs(self) -> InferConfig:
+        """What to write besides the fit, as ``infer.py``'s settings (``motion.pipeline.outputs``)."""
+        return InferConfig(meshes=self.meshes, mesh_format=self.mesh_format, export=list(self.export),
+                           fbx_units=self.fbx_units, usd_format=self.usd_format, usd_units=self.usd_units,
+                           plot=False)
 
 
 register_config("fit_schema", FitCli)
@@ -158,9 +153,7 @@ def run(cfg) -> dict:
     producers = {"tool": "motion.fit", "fit": f"models.fit.{fit.__name__}", "source": capture.source,
                  "kind": settings.kind, "units": settings.units, "fit_shape": solver.fit_shape}
     params = fit_params(result, model, float(settings.fps), rig_label(settings.rig), producers)
-    outputs = InferConfig(meshes=settings.meshes, mesh_format=settings.mesh_format, export=list(settings.export),
-                          fbx_units=settings.fbx_units, usd_format=settings.usd_format,
-                          usd_units=settings.usd_units, plot=False)
+    outputs = settings.outputs()
     lines = []
     with atomic_folder(out_dir) as staging:
         output_seconds = write_outputs(outputs, Models(rig=model, rig_name=rig_label(settings.rig)), params, staging,
