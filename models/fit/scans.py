@@ -8,9 +8,9 @@ current robust scale, early on) is a stray, the others are Geman-McClure-weighte
 vertex (the sum of a vertex's squared point-to-plane distances is its weighted mean point's, exactly).  Only
 scan to mesh: a mesh-to-scan term would pull the unseen half and the holes onto the scan.
 
-Initial placement: the template fitted rigidly (trimmed point-to-plane ICP) from the 24 axis-aligned orientations on the
-first frame (the capture's frame is arbitrary), the best four refined and the best of them kept; every
-next frame starts from the previous.
+Initial placement: the template fitted rigidly (trimmed point-to-plane ICP) from the 24 axis-aligned
+orientations on the first frame (the capture's frame is arbitrary), the best four refined and the best of
+them kept; every next frame starts from the previous.
 """
 from __future__ import annotations
 
