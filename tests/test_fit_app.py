@@ -118,7 +118,7 @@ def test_head2neck_theta_seq_reads_fit_folders_and_checks_the_rig(tmp_path, buil
     single = load_theta_sequences(tmp_path / "fits" / "take1" / "params.npz", rig=builtin_rig.rig)
     assert np.array_equal(single[0].theta, clips[1].theta)
     task = Task(compose_config("train", ["task=head2neck", "data=theta_seq", f"data.path={tmp_path / 'fits'}",
-                                         "data.val_fraction=0.34", "model.hidden=[32,32]"]))
+                                         "data.val_fraction=0.34", "data.calibrate=false", "model.hidden=[32,32]"]))
     assert len(task.train["head"]) + len(task.val["head"]) == 75 and len(task.val["head"]) in (20, 25, 30)
     with pytest.raises(InputError, match=r"take0/params\.npz: made with rig 'builtin' .* give rig= the rig"):
         load_theta_sequences(tmp_path / "fits", rig=RigData.load(turned_rig_file))   # what Task passes: its rig=
