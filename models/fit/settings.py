@@ -15,7 +15,7 @@ covariance and ``joint_uncertainty_deg`` is in degrees):
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -51,7 +51,6 @@ class FitSettings:
     scan_points: int = 8000              # scan points used per frame (random subset, ``seed``)
     scan_max_distance_cm: float = 1.5    # scan points farther from the rig than this are strays
     scan_plane_share: float = 0.1        # point-to-plane data term plus this share of point-to-point
-    extra: dict = field(default_factory=dict)  # reserved for experiments; not read by the solver
 
 
 @dataclass
