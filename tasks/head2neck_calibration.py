@@ -38,7 +38,8 @@ from base.errors import InputError
 from data.cervical_prior import PriorConfig, sample_sequences
 from models.checkpoint import load_model
 from models.head2neck import Head2NeckConfig, Head2NeckMLP
-from tasks.head2neck_stack import FrameBank, Member, StackedMLP, StackSettings, train_stack
+from models.pretrained import pretrained_path
+from tasks.head2neck_stack import FrameBank, Member, StackedMLP, StackSettings, member_errors, train_stack
 
 PRESET_FILES = {"default": "head2neck", "hack": "head2neck_hack"}   # models/pretrained/ entries
 PRESET_STYLES = {"default": "invivo", "hack": "hack"}                # the prior each was trained on
@@ -124,7 +125,6 @@ def fold_frames(frames: int, block: tuple[int, int], gap: float) -> torch.Tensor
 
 
 def load_preset(name: str) -> Head2NeckMLP:
-    from models.pretrained import pretrained_path
 
     return load_model(pretrained_path(PRESET_FILES[name]), task="head2neck")[0].eval()
 
@@ -222,7 +222,6 @@ def better_preset(frames: torch.Tensor, rig) -> str:
 @torch.no_grad()
 def _preset_errors(model: Head2NeckMLP, frames: torch.Tensor, rig) -> torch.Tensor:
     """Per-frame joint error (deg) of a model (no training) on anatomical theta [N,J,3]."""
-    from tasks.head2neck_stack import member_errors
 
     bank = FrameBank.build(frames, rig, model)
     member = Member(torch.arange(len(frames)), torch.zeros(0, dtype=torch.long), 0.0, torch.arange(len(frames)))

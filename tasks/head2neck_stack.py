@@ -25,6 +25,7 @@ import torch
 from torch import nn
 
 from base.rotations import axis_angle_to_matrix, matrix_to_rot6d, relative_angle
+from data.cervical_prior import head_rotations
 from data.joint_limits import adjacent_similarity_energy, rotation_limit_energy
 from models.head2neck import ACTIVATIONS, Head2NeckMLP, chain_head_rotation, correct_to_head, split_head_rotation
 
@@ -57,7 +58,6 @@ class FrameBank:
     @classmethod
     def build(cls, theta: torch.Tensor, rig, model: Head2NeckMLP, extra: torch.Tensor | None = None) -> FrameBank:
         """The bank of anatomical theta [N,J,3] on ``rig`` for models of ``model``'s configuration."""
-        from data.cervical_prior import head_rotations
 
         theta = torch.as_tensor(theta, dtype=torch.float32)
         head = head_rotations(rig, theta)

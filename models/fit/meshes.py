@@ -13,6 +13,7 @@ import torch
 from base.errors import InputError
 from models.fit.sequence import check_finite_settings, fit_sequence, initial_state, kabsch
 from models.fit.settings import FitResult, FitSettings
+from models.fit.shape import ShapeOffset
 from models.rig import HeadNeckModel
 
 
@@ -62,7 +63,6 @@ def fit_weighted_meshes(model: HeadNeckModel, targets: torch.Tensor, weights: to
     state = initial_state(model, rotation, translation)
     shape = None
     if settings.fit_shape:
-        from models.fit.shape import ShapeOffset
 
         shape = ShapeOffset(model, settings)
     return fit_sequence(model, MeshData(targets, weights), state, settings, progress, shape)

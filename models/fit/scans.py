@@ -24,6 +24,7 @@ from base.errors import InputError
 from data.fit_captures import triangles, vertex_normals
 from models.fit.sequence import check_finite_settings, fit_sequence, initial_state
 from models.fit.settings import FitResult, FitSettings
+from models.fit.shape import ShapeOffset
 from models.rig import HeadNeckModel
 
 MIN_POINTS = 100
@@ -179,7 +180,6 @@ def fit_scans(model: HeadNeckModel, clouds: Sequence[np.ndarray], settings: FitS
     state = initial_state(model, rotation, translation)
     shape = None
     if settings.fit_shape:
-        from models.fit.shape import ShapeOffset
 
         shape = ShapeOffset(model, settings)
     data = ScanData(used, model.rig.faces, settings)
