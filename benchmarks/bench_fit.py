@@ -40,7 +40,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from base.rotations import axis_angle_to_matrix, matrix_to_axis_angle, relative_angle  # noqa: E402
 from data.cervical_prior import PriorConfig, sample_sequences  # noqa: E402
-from data.fit_captures import ScanConfig, reshaped_person, scan_sequence, triangles, vertex_normals  # noqa: E402
+from data.fit_captures import ScanConfig, reshaped_person, scan_sequence  # noqa: E402
+from data.mesh_io import triangulate, vertex_normals  # noqa: E402
 from models.fit import FitSettings, fit_meshes, fit_scans  # noqa: E402
 from models.fit.meshes import MeshData, fit_weighted_meshes  # noqa: E402
 from models.fit.sequence import fit_sequence, initial_state  # noqa: E402
@@ -204,7 +205,7 @@ def run_scans(model: HeadNeckModel, truth: Truth, seed: int) -> dict:
     out["fit_no_neck_prior"] = scores(model, truth, result, wall, cpu)
     result, wall, cpu = timed(lambda: fit_scans(model, clouds, FitSettings(**BASELINE)))
     out["per_frame"] = scores(model, truth, result, wall, cpu)
-    tris = triangles(model.rig.faces)
+    tris = triangulate(model.rig.faces)
     visible = torch.tensor(np.stack([vertex_normals(frame, tris)[:, 2] > 0 for frame in truth.clean.numpy()]))
     result, wall, cpu = timed(lambda: fit_weighted_meshes(model, truth.noisy, visible.float(), FitSettings()))
     out["bound"] = scores(model, truth, result, wall, cpu)

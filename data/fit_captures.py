@@ -13,24 +13,7 @@ import dataclasses
 import numpy as np
 
 from data.assets import RigData
-
-
-def triangles(faces: np.ndarray) -> np.ndarray:
-    """Polygons [F,k] (k = 3 or 4) -> triangles [F',3] (quads split along their first diagonal)."""
-    faces = np.asarray(faces)
-    if faces.shape[1] == 3:
-        return faces
-    return np.concatenate([faces[:, [0, 1, 2]], faces[:, [0, 2, 3]]])
-
-
-def vertex_normals(vertices: np.ndarray, tris: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals [V,3] of vertices [V,3] and triangles [F,3]."""
-    a, b, c = (vertices[tris[:, k]] for k in range(3))
-    face = np.cross(b - a, c - a)
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, tris[:, k], face)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+from data.mesh_io import triangulate, vertex_normals
 
 
 @dataclasses.dataclass
@@ -81,7 +64,7 @@ def scan_sequence(vertices: np.ndarray, faces: np.ndarray, seed: int, config: Sc
     """Scans of posed meshes [T,V,3] (cm), one array [N_t,3] per frame, drawn from ``default_rng(seed)``."""
     config = ScanConfig() if config is None else config
     rng = np.random.default_rng(seed)
-    tris = triangles(faces)
+    tris = triangulate(faces)
     return [scan_frame(frame, tris, config, rng) for frame in np.asarray(vertices, np.float64)]
 
 
@@ -112,7 +95,7 @@ def reshaped_person(rig: RigData, seed: int, config: PersonConfig | None = None)
     radial[:, 1] = 0.0                                     # horizontal offsets from the neck's vertical axis
     shape = template + neck[:, None] * (config.neck_width - 1.0) * radial
     shape = shape + head[:, None] * (config.head_scale - 1.0) * (template - head_centre)
-    normals = vertex_normals(template, triangles(rig.faces))
+    normals = vertex_normals(template, triangulate(rig.faces))
     centres = template[rng.choice(len(template), size=config.field_bumps, replace=False)]
     amplitude = rng.normal(0.0, 1.0, config.field_bumps)
     distance2 = ((template[:, None] - centres[None]) ** 2).sum(-1)

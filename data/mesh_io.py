@@ -5,7 +5,8 @@ Faces are ``[F, k]`` vertex indices (0-based), ``k`` = 3 (triangles) or 4
 PLY (:func:`read_ply`): ascii, binary little and big endian; vertices ``x y z``, optional normals
 ``nx ny nz`` and faces (``vertex_indices`` or ``vertex_index`` lists); a point cloud has no faces
 (``[0, 3]``).  Other elements and properties are read past and ignored.  :func:`read_points` reads the
-vertices of either format (a scan: a mesh or a point cloud).
+vertices of either format (a scan: a mesh or a point cloud).  Geometry of a mesh: :func:`triangulate` (fan),
+:func:`vertex_normals` (area-weighted).
 """
 from __future__ import annotations
 
@@ -135,6 +136,16 @@ def triangulate(faces: np.ndarray) -> np.ndarray:
     if faces.shape[1] == 3:
         return faces
     return np.concatenate([faces[:, [0, i, i + 1]] for i in range(1, faces.shape[1] - 1)], axis=0)
+
+
+def vertex_normals(vertices: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals [V,3] of vertices [V,3] and triangles [F,3]."""
+    a, b, c = (vertices[tris[:, k]] for k in range(3))
+    face = np.cross(b - a, c - a)
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, tris[:, k], face)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
 
 
 def read_points(path: str | os.PathLike) -> np.ndarray:

@@ -21,7 +21,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from base.errors import InputError
-from data.fit_captures import triangles, vertex_normals
+from data.mesh_io import triangulate, vertex_normals
 from models.fit.sequence import check_finite_settings, fit_sequence, initial_state
 from models.fit.settings import FitResult, FitSettings
 from models.fit.shape import ShapeOffset
@@ -92,7 +92,7 @@ def rigid_icp(tree: cKDTree, source: np.ndarray, normals: np.ndarray, target: np
 
 def initial_placements(model: HeadNeckModel, clouds: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
     template = model.template.double().numpy()
-    normals = vertex_normals(template, triangles(model.rig.faces))
+    normals = vertex_normals(template, triangulate(model.rig.faces))
     tree = cKDTree(template)
     centre = template.mean(0)
     first = clouds[0]
@@ -122,7 +122,7 @@ class ScanData:
 
     def __init__(self, clouds: list[np.ndarray], faces: np.ndarray, settings: FitSettings):
         self.clouds = clouds
-        self.tris = triangles(faces)
+        self.tris = triangulate(faces)
         self.settings = settings
         self.robust_cm = settings.robust_start_cm
         self.point_rms: dict[int, float] = {}
