@@ -163,6 +163,17 @@ class RigLinearisation:
             blended = torch.einsum("nj,bjrc->bnrc", weights, transforms)
             return (blended[..., :3] @ x[..., None])[..., 0] + blended[..., 3]
 
+    def _features(self, rigid, psi, tau, eta, offset, vertices):
+        """The skin weights [n,J] of ``vertices`` and per vertex its weights times [x; 1] for the rest
+        positions x: [B,n,4J], ordered (joint, column), so that the transforms and their derivatives are one
+        product each."""
+        batch = rigid.shape[0]
+        x = self.rest(rigid[:, 6:].reshape(batch, -1, 3), psi, tau, eta, offset, vertices)
+        weights = self.weights if vertices is None else self.weights[vertices]
+        n, joints = weights.shape
+        features = weights[None, :, :, None] * torch.cat([x, x.new_ones(batch, n, 1)], -1)[:, :, None]
+        return weights, features.reshape(batch, n, 4 * joints)
+
     def gradient(self, rigid, psi, tau, eta, reference, rho, offset=None, vertices=None):
         """J^T rho [B,P], dq/deta . rho [B] for per-vertex vectors rho [B,n,3], and the blended 3x3s
         [B,n,3,3], without the Jacobian:
@@ -172,11 +183,8 @@ class RigLinearisation:
         layout = self.layout
         jac_c = self.transform_derivatives(rigid, reference)                 # [B,J,3,4,R]
         with torch.no_grad():
-            x = self.rest(rigid[:, 6:].reshape(batch, -1, 3), psi, tau, eta, offset, vertices)
-            weights = self.weights if vertices is None else self.weights[vertices]
-            n, joints = weights.shape
-            features = (weights[None, :, :, None] * torch.cat([x, x.new_ones(batch, n, 1)], -1)[:, :, None])
-            features = features.reshape(batch, n, 4 * joints)
+            weights, features = self._features(rigid, psi, tau, eta, offset, vertices)
+            joints = weights.shape[1]
             projected = features.transpose(1, 2) @ rho                       # [B,4J,3]: (joint, column), row
             columns = jac_c.permute(0, 1, 3, 2, 4).reshape(batch, 4 * joints, 3, -1)
             out = rho.new_zeros(batch, layout.size)
@@ -221,13 +229,8 @@ class RigLinearisation:
         layout = self.layout
         jac_c = self.transform_derivatives(rigid, reference)
         with torch.no_grad():
-            x = self.rest(rigid[:, 6:].reshape(batch, -1, 3), psi, tau, eta, offset, vertices)
-            weights = self.weights if vertices is None else self.weights[vertices]
+            weights, features = self._features(rigid, psi, tau, eta, offset, vertices)
             n, joints = weights.shape
-            # Per vertex its weights times [x; 1]: [B,n,4J]; the transforms and their derivatives are then
-            # one product each, ordered (joint, column).
-            features = (weights[None, :, :, None] * torch.cat([x, x.new_ones(batch, n, 1)], -1)[:, :, None])
-            features = features.reshape(batch, n, 4 * joints)
             transforms = self.transforms(rigid, reference)                     # [B,J,3,4]
             q = features @ transforms.transpose(2, 3).reshape(batch, 4 * joints, 3)
             jac = q.new_empty(batch, n, 3, layout.size)
