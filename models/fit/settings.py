@@ -35,8 +35,8 @@ class FitSettings:
     translation_acceleration_cm: float = 0.05  # ... of the placement's translation
     tau_acceleration: float = 0.002      # ... of tau
     limit_deg: float = 1.0               # E_rot: std of an angle beyond its joint limit (0 disables E_rot)
-    neck_prior: str = "subaxial"         # none | subaxial: E_sim on the pairs C6-C7 ... C2-C3 | auto: subaxial
-                                         # for scans, none for meshes (measured, benchmarks/README.md)
+    neck_prior: str = "subaxial"         # none | subaxial: E_sim on the pairs C6-C7 ... C2-C3 (measured,
+                                         # benchmarks/README.md)
     neck_prior_deg: float = 0.5          # std of an adjacent pair's difference (anatomical frames)
     psi_scale: float = 3.0               # std of the weak pull of psi to zero
     iterations: tuple[int, int, int] = (2, 3, 6)  # Gauss-Newton iterations: placement, + neck, + all

@@ -216,12 +216,10 @@ class Solver:
         """The neck prior's constant Hessian on theta[1:] [3(J-1), 3(J-1)] (zero for ``none``)."""
         size = 3 * (self.layout.num_joints - 1)
         prior = self.settings.neck_prior
-        if prior == "auto":
-            prior = "subaxial" if getattr(self.data, "robust_inside", False) else "none"   # scans | meshes
         if prior == "none":
             return np.zeros((size, size))
         if prior != "subaxial":
-            raise ValueError(f"FitSettings.neck_prior={prior!r}: expected auto, none or subaxial")
+            raise ValueError(f"FitSettings.neck_prior={prior!r}: expected none or subaxial")
         axes = self.axes.double().numpy()                     # [J-1,3,3]: anatomical = axes^T theta
         rows = []
         for a in range(0, 4):                                 # joints 1..5 (c6c7..c2c3) -> rest index 0..4
