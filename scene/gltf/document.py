@@ -201,9 +201,12 @@ def build_gltf(export: ExportData, rig: HeadNeckModel, params: AnimationParams, 
 
 
 def gltf_extras(params: AnimationParams, larynx: LarynxTargets) -> dict:
-    """The file's ``asset.extras``: units and axes, the clip's rate, its rig and producers, the larynx nodes."""
+    """The file's ``asset.extras``: units and axes, the clip's rate, its rig and producers (JSON with sorted
+    keys, as ``params.npz`` stores them: the same file from the params in memory or read back), the larynx
+    nodes."""
     return {"units": "metre", "source_units": "cm", "up": "+y", "forward": "+z", "fps": float(params.fps),
-            "rig": params.rig, "rig_checksum": params.rig_checksum, "producers": json.dumps(params.producers),
+            "rig": params.rig, "rig_checksum": params.rig_checksum,
+            "producers": json.dumps(params.producers, sort_keys=True),
             "larynx_taus": [float(t) for t in larynx.taus]}
 
 
