@@ -26,10 +26,11 @@ SKIN_COLOUR = [0.80, 0.62, 0.52, 1.0]
 class ExportReport:
     """What an export wrote and how faithful it is.
 
-    path; vertices (glTF) / rig_vertices; triangles; frames; fps; influences (per vertex in the file) and
-    truncated (vertices that lost weight); expression_targets, larynx_targets, corrective_targets;
-    tau_range (low, high); larynx_error_cm (the interpolation bound); max_error_cm: the largest vertex
-    error over all frames of the file's own data (skin + morphs, float32) against the rig's forward pass
+    path (None until written, :func:`write_glb`); vertices (glTF) / rig_vertices; triangles; frames; fps;
+    influences (per vertex in the file) and truncated (vertices that lost weight); expression_targets,
+    larynx_targets, corrective_targets; tau_range (low, high); larynx_error_cm (the interpolation bound);
+    max_error_cm: the largest vertex error over all frames of the file's own data (skin + morphs, float32)
+    against the rig's forward pass
     (None if not checked); bytes; seconds.
     """
 
