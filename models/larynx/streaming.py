@@ -6,15 +6,18 @@ written beside it: :func:`~models.larynx.encoder.encoder_frame` (the expression 
 :func:`~models.larynx.block.cross_frame` and :func:`~models.larynx.block.block_frame` (each block's
 self-attention over a cache of ``window`` frames).  They compute from a snapshot of the weights laid out for
 single-frame products (:class:`FrameWeights`, :mod:`.folding`).
+
+A member is a :class:`~models.larynx.model.LarynxTransformer` (this module reads its ``expression``, ``blocks``,
+``head``, ``tau_mean``, ``tau_scale``, ``window``, ``cfg``, ``token_base`` and ``output_gain``); the model
+imports this module for its ``stream``, so the members are typed as the ``nn.Module`` they are.
 """
 from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from base.threads import single_thread
 from data.expressions import NUM_EXPRESSIONS
@@ -23,16 +26,13 @@ from .block import BlockFrameWeights, BlockState, block_frame, cross_frame
 from .encoder import EncoderFrameWeights, encoder_frame, member_state, stack_states
 from .folding import linear, stacked
 
-if TYPE_CHECKING:
-    from .model import LarynxTransformer
-
 
 class FrameWeights:
     """The weights of one live frame of every member, taken from the models once per :class:`LarynxStream` and
     stacked (:mod:`.folding`): the encoder's (:class:`EncoderFrameWeights`), each block's
     (:class:`BlockFrameWeights`), the head's, and each member's tau normalisation [K,1]."""
 
-    def __init__(self, members: list[LarynxTransformer]):
+    def __init__(self, members: list[nn.Module]):
         self.encoder = EncoderFrameWeights([m.expression for m in members])
         self.blocks = [BlockFrameWeights(list(blocks)) for blocks in zip(*(m.blocks for m in members))]
         self.head = stacked([linear(m.head) for m in members])
@@ -58,7 +58,7 @@ def trimmed_mean(tau: Tensor) -> Tensor:
 _SNAPSHOTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def frame_weights(members: list[LarynxTransformer]) -> FrameWeights:
+def frame_weights(members: list[nn.Module]) -> FrameWeights:
     """The :class:`FrameWeights` of ``members``, one snapshot shared by every stream made while their parameters
     are unchanged (a phone per stream reads the same weights, which stay in the CPU's cache: four streams of an
     ensemble step about 30% faster than with a copy each); a parameter or buffer changed since (an optimiser
@@ -99,7 +99,7 @@ class LarynxStream:
     :func:`generate` does) run the encoder's modules over all of them; the decoder always runs frame by frame.
     """
 
-    def __init__(self, members: list[LarynxTransformer], batch_size: int = 1, subject: Tensor | None = None):
+    def __init__(self, members: list[nn.Module], batch_size: int = 1, subject: Tensor | None = None):
         self.members = list(members)
         self.batch_size = batch_size
         first = self.members[0]
