@@ -4,8 +4,8 @@
 
 Builds the import graph with grimp (what import-linter uses), imports under ``TYPE_CHECKING`` included (a
 type-only cycle is a cycle too), and prints each strongly connected set of more than one module (and each
-module importing itself); exit status 1 when there is one.  A package's ``__init__`` counts as the package's module, so a submodule that
-imports its own package's ``__init__`` which imports it back is a cycle too.
+module importing itself); exit status 1 when there is one.  A package's ``__init__`` counts as the package's
+module, so a submodule that imports its own package's ``__init__`` which imports it back is a cycle too.
 """
 from __future__ import annotations
 
