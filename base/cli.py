@@ -162,4 +162,3 @@ def as_list(value) -> list:
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
         return [value]
     return list(value)
-

@@ -1,6 +1,6 @@
 """Import cycles among the project's modules, packages included (``lint-imports`` checks only the layers):
 
-    python tools/import_cycles.py
+    python -m tools.import_cycles
 
 Builds the import graph with grimp (what import-linter uses), imports under ``TYPE_CHECKING`` included (a
 type-only cycle is a cycle too), and prints each strongly connected set of more than one module (and each
@@ -58,10 +58,17 @@ def cycles(graph) -> list[list[str]]:
     return sorted(out)
 
 
+def project_graph():
+    """grimp's import graph of the packages, ``TYPE_CHECKING`` imports included."""
+    root = str(Path(__file__).resolve().parents[1])
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    return grimp.build_graph(*PACKAGES, include_external_packages=False, exclude_type_checking_imports=False,
+                             cache_dir=None)
+
+
 def main() -> int:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    graph = grimp.build_graph(*PACKAGES, include_external_packages=False, exclude_type_checking_imports=False,
-                              cache_dir=None)
+    graph = project_graph()
     found = cycles(graph)
     for group in found:
         print("cycle: " + " <-> ".join(group))

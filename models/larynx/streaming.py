@@ -90,8 +90,7 @@ class LarynxStream:
     member for a single model, K for an ensemble, :mod:`.ensemble`), all members computed in the same calls.
     The stream keeps the expression encoder's state (:class:`~models.larynx.encoder.EncoderState`: convolution
     history, recurrent state, smoothed values, stacked over the members) and per block a :class:`BlockState` (a
-    self-attention cache of ``window`` frames).  Nothing in it grows with the position (:func:`tensor_bytes`
-    measures it).
+    self-attention cache of ``window`` frames).  Nothing in it grows with the position (the tests measure it).
 
     The frames are computed from ``weights`` (:class:`FrameWeights`), a snapshot of the members' taken when the
     stream is made and shared with the other streams of the same weights (:func:`frame_weights`): make a new
@@ -114,11 +113,6 @@ class LarynxStream:
         self.blocks = [BlockState.start(count, cfg.n_heads, cfg.d_model // cfg.n_heads, first.window, dtype,
                                         device) for _ in first.blocks]
         self.expression_state = stack_states([m.expression.initial_state(batch_size, dtype) for m in self.members])
-
-    def state_bytes(self) -> int:
-        """Bytes of the tensors the stream carries from frame to frame: all it holds but its models and its
-        snapshot of the weights (both fixed for the stream's life)."""
-        return tensor_bytes(self, exclude=(self.members, self.weights))
 
     @torch.inference_mode()
     def encode(self, psi: Tensor) -> list[EncodedFrame]:
@@ -179,29 +173,3 @@ def generate(stream: LarynxStream, psi: Tensor, chunk: int = 1024) -> Tensor:
             for t, frame in enumerate(frames):
                 out[:, start + t] = stream.advance(frame)
     return out
-
-
-def tensor_bytes(root, exclude: tuple = ()) -> int:
-    """Bytes of the storage of every tensor reachable from ``root`` through attributes, lists, tuples, dicts
-    and dataclasses, each storage counted once (views share it); objects in ``exclude`` (e.g. the model,
-    whose weights do not belong to a stream) are not entered."""
-    seen_storages, seen_objects, total = set(), set(), 0
-    skip = {id(x) for x in exclude}
-    pending = [root]
-    while pending:
-        obj = pending.pop()
-        if id(obj) in seen_objects or id(obj) in skip:
-            continue
-        seen_objects.add(id(obj))
-        if isinstance(obj, Tensor):
-            storage = obj.untyped_storage()
-            if storage.data_ptr() not in seen_storages:
-                seen_storages.add(storage.data_ptr())
-                total += storage.nbytes()
-        elif isinstance(obj, dict):
-            pending.extend(obj.values())
-        elif isinstance(obj, (list, tuple, set)):
-            pending.extend(obj)
-        elif hasattr(obj, "__dict__") and not isinstance(obj, type):
-            pending.extend(vars(obj).values())
-    return total
