@@ -34,8 +34,8 @@ from data.mesh_io import write_ply  # noqa: E402
 from data.params import load_params  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
 from scene.characters import person_rig, resolve_rig  # noqa: E402
-from scene.fbx import blender_vertices  # noqa: E402
 from scene.gltf import METRES_PER_CM, split_uv_seams  # noqa: E402
+from tests.blender_sampling import blender_vertices  # noqa: E402
 
 
 def capture_sequence(rig: HeadNeckModel, frames: int, noise_mm: float = 1.0, seed: int = 0) -> dict:

@@ -13,9 +13,14 @@ from base.errors import InputError
 from base.rotations import axis_angle_to_matrix
 from data.assets import RigData, with_shape_offset
 from data.expressions import EXPRESSION_NAMES
+from data.fit_captures import reshaped_person
 from data.params import AnimationParams, load_params, rig_checksum, save_params
 from models.rig import HeadNeckModel
+from scene.characters import person_rig
+from scene.gltf import METRES_PER_CM
+from tests.blender_sampling import blender_vertices
 from tests.conftest import REPO
+from tests.test_fbx import blender_ready, gltf_vertex_order
 
 sys.path.insert(0, str(REPO / "benchmarks"))
 from fit_app_check import capture_sequence  # noqa: E402  (the synthetic capture, shared with the benchmark)
@@ -301,14 +306,8 @@ def test_a_fitted_person_round_trips_through_the_glb_into_blender(tmp_path, buil
     """Issue 55's round trip: another person's capture -> motion.fit (fit_shape) -> params.npz -> anim.glb ->
     Blender's glTF importer, posed at every frame, within 0.01 cm of the fitted mesh (the rig posed on the
     fitted shape) in the rig's frame; without the shape term the same mesh would be centimetres off."""
-    from data.fit_captures import reshaped_person
-    from scene.characters import person_rig
-    from scene.gltf import METRES_PER_CM
-    from tests.test_fbx import blender_ready, gltf_vertex_order
-
     if blender_ready() is not None:
         pytest.skip(blender_ready())
-    from scene.fbx import blender_vertices
 
     person = HeadNeckModel(reshaped_person(builtin_rig.rig, seed=0))
     truth = capture_sequence(person, 4)

@@ -17,11 +17,11 @@ from models.head2neck import predict_theta
 from models.larynx import predict_tau
 from models.pretrained import pretrained_path
 from motion.face import read_face_video
+from motion.face.frames import VIDEO_SUFFIXES
 from motion.head2neck import head_rotations_from_ypr, recentered
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models
 from motion.swallow import insert_swallows, read_template
-from motion.track.sources import VIDEO_SUFFIXES
 from motion.voice import load_voice, voice_on_frames
 
 # Expressions no ARKit capture has (ICT's cheekRaiser_L/R): their absence is a note, not an error.
