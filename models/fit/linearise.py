@@ -68,15 +68,16 @@ class FrameLayout:
 @dataclass
 class Skinned:
     """A batch of B frames posed at ``vertices`` [n] (all when None), kept for the gradient and the Hessian of
-    the same linearisation: the skin weights [n,J], the features [B,n,4J] (``RigLinearisation._features``), the
-    transforms C [B,J,3,4] (placement included), the transforms' derivatives [B,J,3,4,R] and the posed
-    vertices q [B,n,3]."""
+    the same linearisation: the skin weights [n,J], the rest shape x [B,n,3], the transforms C [B,J,3,4]
+    (placement included), their derivatives [B,J,3,4,R], per vertex their blend [B,n,3,4] (L | t) and the
+    posed vertices q = L x + t [B,n,3]."""
 
     vertices: torch.Tensor | None
     weights: torch.Tensor
-    features: torch.Tensor
+    rest: torch.Tensor
     transforms: torch.Tensor
     derivatives: torch.Tensor
+    blended: torch.Tensor
     q: torch.Tensor
 
 
@@ -175,31 +176,43 @@ class RigLinearisation:
     def pose(self, rigid, psi, tau, eta, reference, offset=None, vertices=None) -> torch.Tensor:
         """Posed vertices in the capture's frame [B,n,3]."""
         with torch.no_grad():
-            transforms = self.transforms(rigid, reference)
-            _, features = self._features(rigid, psi, tau, eta, offset, vertices)
-            return self._posed(features, transforms)
+            weights = self.weights if vertices is None else self.weights[vertices]
+            x = self.rest(rigid[:, 6:].reshape(len(rigid), -1, 3), psi, tau, eta, offset, vertices)
+            return self._posed(self._blend(weights, self.transforms(rigid, reference)), x)
 
     @staticmethod
-    def _posed(features: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
-        """q [B,n,3] = features [B,n,4J] times the transforms [B,J,3,4] (one product per frame)."""
+    def _blend(weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+        """Per vertex the skin-weighted transform [B,n,3,4] for weights [n,J], transforms [B,J,3,4]: one
+        [n,J] x [J,12B] product."""
         batch, joints = transforms.shape[:2]
-        return features @ transforms.transpose(2, 3).reshape(batch, 4 * joints, 3)
+        flat = transforms.permute(1, 0, 2, 3).reshape(joints, batch * 12)
+        return (weights @ flat).reshape(-1, batch, 3, 4).permute(1, 0, 2, 3)
+
+    @staticmethod
+    def _posed(blended: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """q = L x + t [B,n,3] for blended [B,n,3,4] and rest positions x [B,n,3] (no per-vertex products)."""
+        q = blended[..., 3] + blended[..., 0] * x[..., 0, None]
+        q.addcmul_(blended[..., 1], x[..., 1, None])
+        return q.addcmul_(blended[..., 2], x[..., 2, None])
 
     def skin(self, rigid, psi, tau, eta, reference, offset=None, vertices=None) -> Skinned:
         """The frames posed at ``vertices`` with what their gradient and Hessian reuse (``Skinned``)."""
         derivatives = self.transform_derivatives(rigid, reference)
         with torch.no_grad():
             transforms = self.transforms(rigid, reference)
-            weights, features = self._features(rigid, psi, tau, eta, offset, vertices)
-            return Skinned(vertices, weights, features, transforms, derivatives, self._posed(features, transforms))
+            weights = self.weights if vertices is None else self.weights[vertices]
+            x = self.rest(rigid[:, 6:].reshape(len(rigid), -1, 3), psi, tau, eta, offset, vertices)
+            blended = self._blend(weights, transforms)
+            return Skinned(vertices, weights, x, transforms, derivatives, blended, self._posed(blended, x))
 
-    def pull_back(self, skinned: Skinned, vectors: torch.Tensor) -> torch.Tensor:
+    @staticmethod
+    def pull_back(skinned: Skinned, vectors: torch.Tensor) -> torch.Tensor:
         """L^T v [B,n,3] for per-vertex vectors v [B,n,3], L the blended 3x3 of the transforms (placement
-        included): one [n,3] x [3,3J] product per frame, then the skin weights (no per-vertex 3x3 products)."""
-        batch, joints = skinned.transforms.shape[:2]
-        linear = skinned.transforms[..., :3].permute(0, 2, 1, 3).reshape(batch, 3, 3 * joints)   # [B,r,(j,c)]
-        per_joint = (vectors @ linear).reshape(batch, -1, joints, 3)                          # [B,n,J,3]
-        return (per_joint * skinned.weights[None, :, :, None]).sum(2)
+        included)."""
+        linear = skinned.blended
+        back = linear[..., 0, :3] * vectors[..., 0, None]
+        back.addcmul_(linear[..., 1, :3], vectors[..., 1, None])
+        return back.addcmul_(linear[..., 2, :3], vectors[..., 2, None])
 
     def mean_metric(self, skinned: Skinned, weights: torch.Tensor) -> torch.Tensor:
         """mean over the frames of weights [B,n] times L^T L [n,3,3] (psi's rest-space information on meshes):
@@ -226,15 +239,19 @@ class RigLinearisation:
                  skinned: Skinned | None = None):
         """J^T rho [B,P] and dq/deta . rho [B] for per-vertex vectors rho [B,n,3], and the ``Skinned`` frames
         (``skinned`` when given: the same frames posed at the same vertices), without the Jacobian:
-        the rigid part through the [n,4J] features (``linearise``), psi through the expressions pulled back by
-        the blended 3x3s, tau and eta at the larynx vertices."""
+        the rigid part through the skin-weighted [x; 1] rho^T (the [n,4J] features of ``linearise``), psi
+        through the expressions pulled back by the blended 3x3s, tau and eta at the larynx vertices."""
         if skinned is None:
             skinned = self.skin(rigid, psi, tau, eta, reference, offset, vertices)
         batch = rigid.shape[0]
         layout = self.layout
         with torch.no_grad():
-            joints = skinned.weights.shape[1]
-            projected = skinned.features.transpose(1, 2) @ rho              # [B,4J,3]: (joint, column), row
+            n, joints = skinned.weights.shape
+            # sum_n w_nj [x_n; 1] rho_n^T per joint: [J,n] x [n, 12B], ordered (joint, column), row.
+            x = skinned.rest.permute(1, 0, 2)                               # [n,B,3]
+            outer = torch.cat([x, x.new_ones(n, batch, 1)], -1)[..., :, None] * rho.permute(1, 0, 2)[..., None, :]
+            projected = (skinned.weights.T @ outer.reshape(n, -1)).reshape(joints, batch, 4, 3)
+            projected = projected.permute(1, 0, 2, 3).reshape(batch, 4 * joints, 3)
             columns = skinned.derivatives.permute(0, 1, 3, 2, 4).reshape(batch, 4 * joints, 3, -1)
             out = rho.new_zeros(batch, layout.size)
             out[:, layout.rigid] = torch.einsum("bkr,bkrp->bp", projected, columns)
