@@ -70,14 +70,11 @@ def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings
     # (constant within a stage, so that Levenberg-Marquardt can compare the energies of its steps).
     levels = [settings.robust_start_cm * (settings.robust_scale_cm / settings.robust_start_cm) ** (k / 2)
               for k in range(3)]
-    # Meshes: every stage but the last fine_iterations on a subsample of the vertices (the shape offset's
-    # stage on every vertex).
+    # Meshes: the placement and neck stages on a subsample of the vertices, the last on every vertex.
     coarse = coarse_vertices(model.num_vertices, settings.coarse_vertices) if hasattr(data, "subset") else None
-    fine = iterations[2] if coarse is None or shape is not None else min(settings.fine_iterations, iterations[2])
     plan = (("placement", placement, False, levels[0], iterations[0], coarse),
             ("neck", neck, False, levels[1], iterations[1], coarse),
-            ("all (coarse)", everything, True, levels[2], iterations[2] - fine, coarse),
-            ("all", everything, True, levels[2], fine, None))
+            ("all", everything, True, levels[2], iterations[2], None))
     for name, mask, with_eta, level, count, subset in plan:
         if not count:
             continue
