@@ -44,7 +44,7 @@ class FitSettings:
     damping: float = 1e-4                # initial Levenberg-Marquardt damping (relative to the diagonal)
     coarse_vertices: int = 2000          # meshes: the placement and neck stages on about this many vertices (0: all)
     hessian_vertices: int = 2000         # Gauss-Newton Hessian from about this many vertices (the gradient: all)
-    workers: int = 1                     # meshes: overlapping windows of the sequence fitted at once, a thread each
+    workers: int = 1                     # meshes: overlapping windows of the sequence fitted at once, a process each
     window_overlap: int = 12             # ... frames shared by adjacent windows (each keeps its half)
     chunk: int = 16                      # frames linearised at once (memory ~ chunk * 14 MB on the real rig)
     shape_laplacian_cm: float = 0.003    # shape offset: std of its graph Laplacian (I - D^-1 A) per vertex

@@ -74,7 +74,7 @@ class FitCli:
     usd_units: str = "cm"           # cm (metersPerUnit 0.01) | m
     plot: bool = True
     progress: bool = True           # progress bars while reading and fitting
-    threads: int = 2                # cores: kind=meshes fits this many windows of the sequence at once, a thread
+    threads: int = 2                # cores: kind=meshes fits this many windows of the sequence at once, a process
                                     # each (solver.workers); otherwise torch's threads
     solver: FitSettings = field(default_factory=FitSettings)   # models.fit's knobs
 
