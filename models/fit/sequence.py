@@ -70,8 +70,11 @@ def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings
     # (constant within a stage, so that Levenberg-Marquardt can compare the energies of its steps).
     levels = [settings.robust_start_cm * (settings.robust_scale_cm / settings.robust_start_cm) ** (k / 2)
               for k in range(3)]
-    # Meshes: the placement and neck stages on a subsample of the vertices, the last on every vertex.
-    coarse = coarse_vertices(model.num_vertices, settings.coarse_vertices) if hasattr(data, "subset") else None
+    # Meshes: the placement and neck stages on a subsample of the vertices, the last on every vertex (with the
+    # shape offset, which is fitted at every vertex, every stage on every vertex).
+    coarse = None
+    if hasattr(data, "subset") and shape is None:
+        coarse = coarse_vertices(model.num_vertices, settings.coarse_vertices)
     plan = (("placement", placement, False, levels[0], iterations[0], coarse),
             ("neck", neck, False, levels[1], iterations[1], coarse),
             ("all", everything, True, levels[2], iterations[2], None))

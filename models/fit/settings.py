@@ -42,7 +42,7 @@ class FitSettings:
     iterations: tuple[int, int, int] = (2, 3, 6)  # Gauss-Newton iterations: placement, + neck, + all
     tolerance: float = 1e-4              # a stage ends once a step lowers the energy by less than this share
     damping: float = 1e-4                # initial Levenberg-Marquardt damping (relative to the diagonal)
-    coarse_vertices: int = 2000          # meshes: the placement and neck stages on about this many vertices (0: all)
+    coarse_vertices: int = 2000          # meshes, no fit_shape: placement and neck stages on ~this many vertices
     hessian_vertices: int = 2000         # Gauss-Newton Hessian from about this many vertices (the gradient: all)
     workers: int = 1                     # meshes: overlapping windows of the sequence fitted at once, a process each
     window_overlap: int = 12             # ... frames shared by adjacent windows (each keeps its half)
