@@ -74,7 +74,8 @@ class FitCli:
     usd_units: str = "cm"           # cm (metersPerUnit 0.01) | m
     plot: bool = True
     progress: bool = True           # progress bars while reading and fitting
-    threads: int = 2
+    threads: int = 2                # cores: kind=meshes fits this many windows of the sequence at once, a process
+                                    # each (solver.workers); otherwise torch's threads
     solver: FitSettings = field(default_factory=FitSettings)   # models.fit's knobs
 
     def __post_init__(self) -> None:
@@ -97,10 +98,13 @@ register_config("fit_schema", FitCli)
 
 
 def solver_settings(settings: FitCli) -> FitSettings:
-    """The solver's settings: ``solver.*`` with ``fit_shape`` (either key turns the shape term on)."""
+    """The solver's settings: ``solver.*`` with ``fit_shape`` (either key turns the shape term on) and
+    ``workers`` from ``threads`` unless ``solver.workers`` says otherwise."""
     solver = settings.solver
     values = {f.name: getattr(solver, f.name) for f in dataclasses.fields(solver)}
     values["fit_shape"] = bool(settings.fit_shape or solver.fit_shape)
+    if solver.workers == 1:
+        values["workers"] = max(1, settings.threads)
     if isinstance(values.get("iterations"), list):
         values["iterations"] = tuple(values["iterations"])
     return FitSettings(**values)
