@@ -52,7 +52,7 @@ def initial_state(model: HeadNeckModel, rotation: torch.Tensor, translation: tor
 def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings,
                  progress: Callable[[int], None] | None = None, shape=None) -> FitResult:
     """The coarse-to-fine stages from ``state``; ``shape`` (``models.fit.shape.ShapeOffset``, or None) updates
-    the offset after each step of the last stage."""
+    the offset after each step of the neck's and the last stage."""
     started = time.perf_counter()
     lin = RigLinearisation(model)
     T = len(state.rigid)
@@ -75,7 +75,9 @@ def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings
     stages = (("placement", placement, False), ("neck", neck, False), ("all", everything, True))
     for (name, mask, with_eta), first, count in zip(stages, offsets, iterations):
         if count:
-            after = (lambda s: shape.step(solver, s)) if (shape is not None and name == "all") else None
+            # The offset follows the neck's stage too: a pose fitted without it takes the person's shape into
+            # its mean, and the later steps do not undo that (benchmarks/README.md, "Another person").
+            after = (lambda s: shape.step(solver, s)) if (shape is not None and name != "placement") else None
             state = solver.run_stage(state, mask, count, scales[first: first + count], with_eta, name, after)
     rms = final_rms(lin, data, state, settings)
     solver._passes_done = solver._passes_total
