@@ -52,7 +52,7 @@ def initial_state(model: HeadNeckModel, rotation: torch.Tensor, translation: tor
 def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings,
                  progress: Callable[[int], None] | None = None, shape=None) -> FitResult:
     """The coarse-to-fine stages from ``state``; ``shape`` (``models.fit.shape.ShapeOffset``, or None) updates
-    the offset after each step of the neck's and the last stage."""
+    the offset after each step of the second (then with psi, tau and eta free) and the last stage."""
     started = time.perf_counter()
     lin = RigLinearisation(model)
     T = len(state.rigid)
@@ -72,10 +72,14 @@ def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings
               for k in range(3)]
     scales = [level for level, count in zip(levels, iterations) for _ in range(count)]
     offsets = np.cumsum([0, *iterations])
-    stages = (("placement", placement, False), ("neck", neck, False), ("all", everything, True))
+    # With the shape offset the second stage frees psi, tau and eta too: the offset, updated from the second stage
+    # on, would otherwise take the mean expression and larynx there (held at 0, 0, 1) and the last stage trade
+    # them back (benchmarks/README.md, "Another person").
+    second = ("neck", everything, True) if shape is not None else ("neck", neck, False)
+    stages = (("placement", placement, False), second, ("all", everything, True))
     for (name, mask, with_eta), first, count in zip(stages, offsets, iterations):
         if count:
-            # The offset follows the neck's stage too: a pose fitted without it takes the person's shape into
+            # The offset follows the second stage too: a pose fitted without it takes the person's shape into
             # its mean, and the later steps do not undo that (benchmarks/README.md, "Another person").
             after = (lambda s: shape.step(solver, s)) if (shape is not None and name != "placement") else None
             state = solver.run_stage(state, mask, count, scales[first: first + count], with_eta, name, after)

@@ -1,6 +1,6 @@
 """The per-sequence shape offset: a smooth offset of the rest mesh that absorbs another person's head and neck.
 
-After each step of the neck's and the last stage (``models.fit.sequence``), with the poses held, the offset
+After each step of the second and the last stage (``models.fit.sequence``), with the poses held, the offset
 s [V,3] (cm) minimises
 
     sum_t sum_n w_tn |M_tn (s_n - s_n^old) - e_tn|^2 / noise^2  +  |L s|^2 / shape_laplacian_cm^2
