@@ -12,11 +12,10 @@ offset, as the data term weighs it: per axis for meshes, along the normal plus a
 solved by preconditioned conjugate gradients.  The smoothness keeps the offset from bending with the pose: a
 pose error is not smooth on the mesh (it moves a band of skin against its neighbours); what is smooth, the
 head turned rigidly on a constant pose error, is penalised: the best-fitting small rotation of the offset
-over the head's bone region is held at zero (measured on the real rig: without it the head's orientation went
-into the offset, 13.8 degrees).  Holding every bone region's rotation and translation at zero instead forced
-the other person's region-wise translations into the neck's joints (C2-C3 20 degrees, C1-C2 15).
-Keeping the larynx's displacement field out of the offset (for eta
-to explain) measured worse: a wider neck moves the same skin forward, and eta took it.
+over the head's bone region is held at zero (without it the head's orientation goes into the offset).  Only
+the head's: the neck's bone regions are small and another person's offset moves each of them, which held at
+zero the neck's joints would have to produce.  The larynx's displacement field stays in the offset: a wider
+neck moves the same skin forward.  (Measurements: benchmarks/README.md, "Another person".)
 """
 from __future__ import annotations
 
