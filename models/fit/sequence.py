@@ -52,7 +52,7 @@ def initial_state(model: HeadNeckModel, rotation: torch.Tensor, translation: tor
 def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings,
                  progress: Callable[[int], None] | None = None, shape=None) -> FitResult:
     """The coarse-to-fine stages from ``state``; ``shape`` (``models.fit.shape.ShapeOffset``, or None) updates
-    the offset after each step of the last stage."""
+    the offset after each step of the second (then with psi, tau and eta free) and the last stage."""
     started = time.perf_counter()
     lin = RigLinearisation(model)
     T = len(state.rigid)
@@ -75,15 +75,21 @@ def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings
     coarse = None
     if hasattr(data, "subset") and shape is None:
         coarse = coarse_vertices(model.num_vertices, settings.coarse_vertices)
+    # With the shape offset the second stage frees psi, tau and eta too: the offset, updated from the second stage
+    # on, would otherwise take the mean expression and larynx there (held at 0, 0, 1) and the last stage trade
+    # them back (benchmarks/README.md, "Another person").
+    second = ("neck", everything, True) if shape is not None else ("neck", neck, False)
     plan = (("placement", placement, False, levels[0], iterations[0], coarse),
-            ("neck", neck, False, levels[1], iterations[1], coarse),
+            (*second, levels[1], iterations[1], coarse),
             ("all", everything, True, levels[2], iterations[2], None))
     for name, mask, with_eta, level, count, subset in plan:
         if not count:
             continue
         if hasattr(data, "subset"):
             data.subset = subset
-        after = (lambda s: shape.step(solver, s)) if (shape is not None and name == "all") else None
+        # The offset follows the second stage too: a pose fitted without it takes the person's shape into its
+        # mean, and the later steps do not undo that (benchmarks/README.md, "Another person").
+        after = (lambda s: shape.step(solver, s)) if (shape is not None and name != "placement") else None
         state = solver.run_stage(state, mask, count, [level], with_eta, name, after)
     if hasattr(data, "subset"):
         data.subset = None

@@ -1,6 +1,7 @@
 """The per-sequence shape offset: a smooth offset of the rest mesh that absorbs another person's head and neck.
 
-After each step of the last stage, with the poses held, the offset s [V,3] (cm) minimises
+After each step of the second and the last stage (``models.fit.sequence``), with the poses held, the offset
+s [V,3] (cm) minimises
 
     sum_t sum_n w_tn |M_tn (s_n - s_n^old) - e_tn|^2 / noise^2  +  |L s|^2 / shape_laplacian_cm^2
         + |s|^2 / shape_scale_cm^2
@@ -9,12 +10,12 @@ After each step of the last stage, with the poses held, the offset s [V,3] (cm) 
 offset, as the data term weighs it: per axis for meshes, along the normal plus a share per axis for scans;
 ``L`` the mesh's uniform graph Laplacian, I - D^-1 A): one sparse symmetric system of 3V unknowns per step,
 solved by preconditioned conjugate gradients.  The smoothness keeps the offset from bending with the pose: a
-pose error is not smooth on the mesh (it moves
-a band of skin against its neighbours); what is smooth, a bone region moved rigidly (the head turned on a
-constant pose error), is penalised: each region's best-fitting rigid motion of the offset is held at zero
-(measured on the real rig: without it the head's orientation went into the offset, 13.8 degrees).
-Keeping the larynx's displacement field out of the offset (for eta
-to explain) measured worse: a wider neck moves the same skin forward, and eta took it.
+pose error is not smooth on the mesh (it moves a band of skin against its neighbours); what is smooth, the
+head turned rigidly on a constant pose error, is penalised: the best-fitting small rotation of the offset
+over the head's bone region is held at zero (without it the head's orientation goes into the offset).  Only
+the head's: the neck's bone regions are small and another person's offset moves each of them, which held at
+zero the neck's joints would have to produce.  The larynx's displacement field stays in the offset: a wider
+neck moves the same skin forward.  (Measurements: benchmarks/README.md, "Another person".)
 """
 from __future__ import annotations
 
@@ -44,24 +45,20 @@ def graph_laplacian(faces: np.ndarray, count: int) -> scipy.sparse.csr_matrix:
     return (scipy.sparse.identity(count) - inverse @ adjacency).tocsr()
 
 
-def rigid_components(template: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """[6J, 3V]: per bone region (vertices weighted by their skin weight) the linear map from an offset to its
-    best-fitting small rigid motion (rotation vector, translation), rows normalised."""
-    rows = []
-    for j in range(weights.shape[1]):
-        w = weights[:, j]
-        centre = (w[:, None] * template).sum(0) / max(w.sum(), 1e-12)
-        r = template - centre
-        basis = np.zeros((len(template), 3, 6))     # offset of vertex n for unit (omega, t): omega x r + t
-        basis[:, 0, 1], basis[:, 0, 2] = r[:, 2], -r[:, 1]
-        basis[:, 1, 0], basis[:, 1, 2] = -r[:, 2], r[:, 0]
-        basis[:, 2, 0], basis[:, 2, 1] = r[:, 1], -r[:, 0]
-        basis[:, :, 3:] = np.eye(3)
-        a = basis.reshape(-1, 6)
-        weighted = a * np.repeat(w, 3)[:, None]
-        fit = np.linalg.solve(a.T @ weighted + 1e-9 * np.eye(6), weighted.T)   # [6, 3V]
-        rows.append(fit / np.maximum(np.linalg.norm(fit, axis=1, keepdims=True), 1e-12))
-    return np.concatenate(rows)
+def region_rotation_rows(template: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """[3, 3V]: the linear map from an offset [3V] to the best-fitting small rotation (rotation vector; a
+    translation is fitted beside it) of the region ``weights`` [V] of ``template`` [V,3], rows normalised."""
+    centre = (weights[:, None] * template).sum(0) / max(weights.sum(), 1e-12)
+    r = template - centre
+    basis = np.zeros((len(template), 3, 6))     # offset of vertex n for unit (omega, t): omega x r + t
+    basis[:, 0, 1], basis[:, 0, 2] = r[:, 2], -r[:, 1]
+    basis[:, 1, 0], basis[:, 1, 2] = -r[:, 2], r[:, 0]
+    basis[:, 2, 0], basis[:, 2, 1] = r[:, 1], -r[:, 0]
+    basis[:, :, 3:] = np.eye(3)
+    a = basis.reshape(-1, 6)
+    weighted = a * np.repeat(weights, 3)[:, None]
+    fit = np.linalg.solve(a.T @ weighted + 1e-9 * np.eye(6), weighted.T)[:3]   # [3, 3V]
+    return fit / np.maximum(np.linalg.norm(fit, axis=1, keepdims=True), 1e-12)
 
 
 class ShapeOffset:
@@ -74,11 +71,12 @@ class ShapeOffset:
         prior = (laplacian.T @ laplacian) / settings.shape_laplacian_cm**2
         prior = prior + scipy.sparse.identity(self.count) / settings.shape_scale_cm**2
         self.prior = scipy.sparse.kron(prior, scipy.sparse.identity(3)).tocsr()   # (vertex, axis) order
-        self.rigid_rows = rigid_components(model.template.double().numpy(), model.skin_weights.double().numpy())
+        head = model.skin_weights[:, -1].double().numpy()    # the last bone (oc1) carries the head
+        self.rigid_rows = region_rotation_rows(model.template.double().numpy(), head)
         self.rigid_weight = 1e4 / settings.noise_cm**2   # far above one vertex's data weight per frame
 
     def energy(self, state: State) -> float:
-        """The offset's prior energy (Laplacian, pull to zero, rigid components), in the solver's units."""
+        """The offset's prior energy (Laplacian, pull to zero, the head's rotation), in the solver's units."""
         if state.offset is None:
             return 0.0
         s = state.offset.double().numpy().reshape(-1)
@@ -116,7 +114,7 @@ class ShapeOffset:
         cols = (np.arange(V)[:, None, None] * 3 + np.arange(3)[None, None, :]).repeat(3, 1)
         data_matrix = scipy.sparse.coo_matrix((A.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * V, 3 * V))
         system = (data_matrix.tocsr() + self.prior).tocsr()
-        # Each bone region's rigid motion is pose, not shape: penalised (rank 6J), far above the data.
+        # The head's rotation is pose, not shape: penalised (rank 3), far above the data.
         rows = self.rigid_rows
         weight = self.rigid_weight
         operator = scipy.sparse.linalg.LinearOperator(
