@@ -4,7 +4,8 @@ The normal equations of T frames of P unknowns (``models.fit.linearise.FrameLayo
 data term and E_rot give one P x P block per frame, the second differences couple frames t and t +- 1, 2.
 They are solved as one banded system (``scipy.linalg.solveh_banded``, lower bandwidth 2P: O(T P^3)), and
 eta, which every frame sees, by its Schur complement (one more right-hand side).  Coarse to fine: the
-stages free the placement, then theta, then psi, tau and eta (and the shape offset, ``models.fit.shape``).
+stages free the placement, then theta, then psi, tau and eta (with the shape offset, ``models.fit.shape``,
+the second stage frees everything and the offset follows it and the last).
 
 A data term is an object with ``rows(frames, q) -> (vertices, weights [b,n], targets [b,n,3],
 normals [b,n,3] | None)`` (``vertices`` [n] or None for all, the same for every frame of the call); the
