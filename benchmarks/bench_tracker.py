@@ -213,7 +213,8 @@ def conditions(rig, kernel, neck, frames: int, seeds: int, ablations: bool) -> N
 def tracked_r2(rig, seq, cm_per_px: float) -> tuple[float, float]:
     """(raw, compensated) R^2 of the tracker set up at ``cm_per_px`` as the CLI sets it up."""
     config = TrackerConfig().at_scale(cm_per_px)
-    kernel = calibrate_window(rig_kernel(rig, cm_per_px, kernel_size_at(cm_per_px)), rig, config)
+    kernel = calibrate_window(rig_kernel(rig, cm_per_px, kernel_size_at(cm_per_px, seq.normals.shape[1:])),
+                              rig, config)
     neck = NeckModel.from_rig(rig, neck_camera(rig, cm_per_px=cm_per_px), config.neck)
     track = track_sequence(seq.normals, kernel, config, init=tuple(seq.larynx_px[0]), neck=neck)
     rise = track.y[0] - track.y
