@@ -151,6 +151,12 @@ class LarynxTracker:
         offset = self._offset()
         return (self.slide[0] + self.velocity[0] + offset[0], self.slide[1] + self.velocity[1] + offset[1])
 
+    def jump_tolerance(self, max_jump_px: float) -> float:
+        """The largest accepted distance (px) of a match from the prediction: ``max_jump_px`` per frame since the
+        last accepted one, plus the speed the prediction moved on by (it misses by about that much when the
+        larynx turns: a swallow falling back from its top moves 11 px per frame at 12 px/cm)."""
+        return max_jump_px * (self.missed + 1) + math.hypot(*self.velocity)
+
     def _start_patches(self, normals: np.ndarray, at: tuple[float, float]) -> None:
         """Take the neck's patches around the larynx position ``at`` of this frame (the neck's origin)."""
         if self.neck_model is not None:
@@ -192,7 +198,7 @@ class LarynxTracker:
         x, y, score, inside = self.search(normals, None if reacquire else predicted)
         ok = inside and score >= cfg.min_confidence
         if ok and not reacquire:
-            ok = math.hypot(x - predicted[0], y - predicted[1]) <= cfg.max_jump_px * (self.missed + 1)
+            ok = math.hypot(x - predicted[0], y - predicted[1]) <= self.jump_tolerance(cfg.max_jump_px)
         if ok:
             if self.patches is None:                              # the first position found: the neck's origin
                 self._start_patches(normals, (x, y))
