@@ -9,9 +9,10 @@ predicted position (the whole frame on the first frame without an initial positi
 hanging over the frame's edges where the larynx nears them (its centre in the frame; the correlation
 normalised over the part of it the frame shows: a neck filling the frame); sub-pixel peak by a 2-D
 quadratic on the 3x3 scores around the maximum.  confidence = the peak's weighted normalised correlation
-(clipped to [0, 1]).  A match below ``min_confidence``, further than ``max_jump_px`` (times the frames
-since the last accepted one) from the prediction, or lying on the band's border (the true peak may be
-beyond it) is rejected: the frame keeps the last accepted position and gets confidence 0.
+(clipped to [0, 1]).  A match below ``min_confidence``, further from the prediction than ``max_jump_px``
+times the frames since the last accepted one plus the speed the prediction moved on by
+(:meth:`LarynxTracker.jump_tolerance`), or lying on the band's border (the true peak may be beyond it) is
+rejected: the frame keeps the last accepted position and gets confidence 0.
 
 With a neck model (``motion.track.neck``) each frame first measures the neck's own displacement at the
 larynx; the tracker keeps the larynx's position relative to the neck (its slide) and predicts the next
