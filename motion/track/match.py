@@ -10,8 +10,8 @@ hanging over the frame's edges where the larynx nears them (its centre in the fr
 normalised over the part of it the frame shows: a neck filling the frame); sub-pixel peak by a 2-D
 quadratic on the 3x3 scores around the maximum.  confidence = the peak's weighted normalised correlation
 (clipped to [0, 1]).  A match below ``min_confidence``, further from the prediction than ``max_jump_px``
-times the frames since the last accepted one plus the speed the prediction moved on by
-(:meth:`LarynxTracker.jump_tolerance`), or lying on the band's border (the true peak may be beyond it) is
+times the frames since the last accepted one (on the frame right after it, plus the speed the prediction
+moved on by: :meth:`LarynxTracker.jump_tolerance`), or lying on the band's border (the true peak may be beyond it) is
 rejected: the frame keeps the last accepted position and gets confidence 0.
 
 With a neck model (``motion.track.neck``) each frame first measures the neck's own displacement at the
@@ -154,9 +154,10 @@ class LarynxTracker:
 
     def jump_tolerance(self, max_jump_px: float) -> float:
         """The largest accepted distance (px) of a match from the prediction: ``max_jump_px`` per frame since the
-        last accepted one, plus the speed the prediction moved on by (it misses by about that much when the
-        larynx turns: a swallow falling back from its top moves 11 px per frame at 12 px/cm)."""
-        return max_jump_px * (self.missed + 1) + math.hypot(*self.velocity)
+        last accepted one, plus on the frame right after it the speed the prediction moved on by (it misses by
+        about that much when the larynx turns: a swallow falling back from its top moves 11 px per frame at
+        12 px/cm); after a rejection the tolerance has grown by ``max_jump_px`` instead."""
+        return max_jump_px * (self.missed + 1) + (math.hypot(*self.velocity) if self.missed == 0 else 0.0)
 
     def _start_patches(self, normals: np.ndarray, at: tuple[float, float]) -> None:
         """Take the neck's patches around the larynx position ``at`` of this frame (the neck's origin)."""
