@@ -213,7 +213,8 @@ def conditions(rig, kernel, neck, frames: int, seeds: int, ablations: bool) -> N
 def tracked_r2(rig, seq, cm_per_px: float) -> tuple[float, float]:
     """(raw, compensated) R^2 of the tracker set up at ``cm_per_px`` as the CLI sets it up."""
     config = TrackerConfig().at_scale(cm_per_px)
-    kernel = calibrate_window(rig_kernel(rig, cm_per_px, kernel_size_at(cm_per_px)), rig, config)
+    kernel = calibrate_window(rig_kernel(rig, cm_per_px, kernel_size_at(cm_per_px, seq.normals.shape[1:])),
+                              rig, config)
     neck = NeckModel.from_rig(rig, neck_camera(rig, cm_per_px=cm_per_px), config.neck)
     track = track_sequence(seq.normals, kernel, config, init=tuple(seq.larynx_px[0]), neck=neck)
     rise = track.y[0] - track.y
@@ -246,10 +247,10 @@ def scales(rig, frames: int, seeds: int) -> None:
                       f"{100 * (estimate.cm_per_px / true - 1):+5.1f}%  {elapsed:4.1f} s", flush=True)
 
 
-def cli_run(rig_arg: str | None, seq) -> tuple[float, str]:
-    """(seconds, the printed scale line) of ``python -m motion.track`` in-process on the sequence written as
-    8-bit PNG-encoded values in a .npy, without ``cm_per_px=``, given the larynx's first position (``init_x``,
-    ``init_y``: the search for it is not what is timed)."""
+def cli_run(rig_arg: str | None, seq) -> tuple[float, float, str]:
+    """(seconds, CPU seconds, the printed scale line) of ``python -m motion.track`` in-process on the sequence
+    written as 8-bit PNG-encoded values in a .npy, without ``cm_per_px=``, given the larynx's first position
+    (``init_x``, ``init_y``: the search for it is not what is timed)."""
     import contextlib
     import io
 
@@ -266,12 +267,12 @@ def cli_run(rig_arg: str | None, seq) -> tuple[float, str]:
         if rig_arg:
             args.append(f"rig={rig_arg}")
         printed = io.StringIO()
-        started = time.perf_counter()
+        started, cpu = time.perf_counter(), time.process_time()
         with contextlib.redirect_stdout(printed):
             run(compose_config("track", args))
-        elapsed = time.perf_counter() - started
+        elapsed, cpu = time.perf_counter() - started, time.process_time() - cpu
     line = next((x for x in printed.getvalue().splitlines() if x.startswith("scale:")), "")
-    return elapsed, line
+    return elapsed, cpu, line
 
 
 def framing(rig, rig_arg: str | None, frames: int, sizes: tuple[int, ...] = FRAMING_SIZES,
@@ -304,8 +305,8 @@ def framing(rig, rig_arg: str | None, frames: int, sizes: tuple[int, ...] = FRAM
             whole = ""
             if size >= 512 and px_per_cm in cli:
                 try:
-                    seconds, line = cli_run(rig_arg, seq)
-                    whole = f"{seconds:5.1f} s ({line.split(',')[0]})"
+                    seconds, cpu_seconds, line = cli_run(rig_arg, seq)
+                    whole = f"{seconds:5.1f} s ({cpu_seconds:.1f} CPU; {line.split(',')[0]})"
                 except InputError as error:
                     whole = f"refused: {error}"
             print(head + f"{found[0]:.3f} / {found[1]:.3f}  {estimate.cm_per_px:9.5f}  "

@@ -49,7 +49,7 @@ from motion.track import (
     track_columns,
     track_sequence,
 )
-from motion.track.kernel import with_window
+from motion.track.kernel import kernel_size_at, with_window
 from motion.track.scores import subpixel_peak
 from scene.normal_sequences import SequenceConfig, make_sequence, tau_r2
 from scene.render import NeckRenderer, neck_camera
@@ -166,6 +166,24 @@ def test_rescaled_kernel_tracks_frames_at_another_scale(builtin_rig, kernel):
     assert float((rescaled.normals * direct.normals).sum(-1).mean()) > 0.995   # same normals, resampled
     err = errors(track_sequence(seq.normals, rescaled, TrackerConfig().at_scale(0.06)), seq.larynx_px)
     assert np.median(err) < 0.5 and np.percentile(err, 95) < 1.5
+
+
+def test_a_neck_filling_the_frame_is_tracked_to_the_frames_edge(builtin_rig, kernel):
+    """128 px frames at 0.04 cm/px (5.1 cm of neck, issue 57): swallows lift the larynx up to 26 px above where
+    the kernel (80 px, 5/8 of the frame) still fits in the frame; within the band it hangs over the frame's top."""
+    cm_per_px = 0.04
+    cfg = SequenceConfig(**{**ISSUE_SEQUENCE.__dict__, "frames": 40, "size": 128, "cm_per_px": cm_per_px})
+    seq = make_sequence(builtin_rig, cfg, seed=7)
+    size = kernel_size_at(cm_per_px, seq.normals.shape[1:])
+    assert size == 80                                          # 5.6 cm (140 px) cut to 5/8 of 128 px
+    close = rescale_kernel(kernel, cm_per_px)                  # the 0.08 cm/px kernel's window, rescaled
+    close = with_window(rig_kernel(builtin_rig, cm_per_px, size), *close.window)
+    over = seq.larynx_px[:, 1] < close.centre[1]               # the kernel reaches over the frame's top
+    assert over.sum() >= 5
+    track = track_sequence(seq.normals, close, TrackerConfig().at_scale(cm_per_px), init=tuple(seq.larynx_px[0]))
+    moved = np.abs((track.y - track.y[0]) - (seq.larynx_px[:, 1] - seq.larynx_px[0, 1]))
+    assert track.accepted.all() and np.median(moved) < 1.0
+    assert tau_r2(seq.tau, track.y[0] - track.y) > 0.99          # 0.999 (the larynx point's own: 0.9999)
 
 
 def test_jumps_are_rejected_and_the_last_position_is_held(sequence, kernel):
@@ -482,10 +500,13 @@ def test_cli_kernel_file_at_its_own_pixel_scale(tmp_path, builtin_rig):
 def test_cli_kernel_larger_than_the_frames(tmp_path, builtin_rig):
     seq = make_sequence(builtin_rig, SequenceConfig(frames=2, size=64, cm_per_px=0.32, noise=0.0), seed=0)
     save_npy(tmp_path / "s.npy", seq.normals)
-    # The rig's 70 px kernel at a wrong 0.08 cm/px given for frames at 0.32 cm/px (the scale is warned about).
+    # A 70 px kernel asked for at a wrong 0.08 cm/px given for frames at 0.32 cm/px (the scale is warned about);
+    # unasked, the kernel is at most 5/8 of the frame's short side (40 px here).
     with pytest.raises(InputError, match=r"s\.npy: frame 0: the 70x70 kernel is larger than the 64x64 frames at "
                                          r"0\.08 cm/px; check cm_per_px="):
-        track_cli([f"input={tmp_path / 's.npy'}", f"out={tmp_path / 't.csv'}", "progress=false", "cm_per_px=0.08"])
+        track_cli([f"input={tmp_path / 's.npy'}", f"out={tmp_path / 't.csv'}", "progress=false", "cm_per_px=0.08",
+                   "kernel_size=70"])
+    assert kernel_size_at(0.08) == 70 and kernel_size_at(0.08, (64, 64, 3)) == 40
     with pytest.raises(InputError, match=r"s\.npy: frame 0: kernel of 70 px does not fit a 64x64 frame"):
         track_cli([f"input={tmp_path / 's.npy'}", f"out={tmp_path / 't.csv'}", "kernel=frame", "init_x=32",
                    "init_y=32", "kernel_size=70", "cm_per_px=0.32"])

@@ -4,9 +4,9 @@
         [kernel=rig|frame|kernel.npy] [rig=hack_rig.npz] [px_per_tau=auto|<number>|null] [fps=30]
         [compensate=true]
 
-The capture's pixel scale at the neck (``cm_per_px``) sizes the kernel (70 px at 0.08 cm/px unless
-``kernel_size`` is given), the tracker's pixel settings (``TrackerConfig.at_scale``), the window's
-calibration, the neck model and ``px_per_tau``.
+The capture's pixel scale at the neck (``cm_per_px``) sizes the kernel (70 px at 0.08 cm/px, at most 5/8 of
+the frame's short side, unless ``kernel_size`` is given), the tracker's pixel settings
+(``TrackerConfig.at_scale``), the window's calibration, the neck model and ``px_per_tau``.
 Without ``cm_per_px=`` it is estimated from the first 90 frames (``motion.track.scale``: the rig's neck
 matched over the part of it the frames show, at scales 0.005-0.64 cm/px, views of 4.8 to 100 cm; see
 ``benchmarks/README.md`` for its errors from the whole head to 6.4 cm of neck) and
@@ -133,7 +133,7 @@ def capture_scale(settings: TrackCli, source, rig) -> float:
 def build_kernel(settings: TrackCli, first_frame: np.ndarray, first_label: str, rig_loader,
                  config: TrackerConfig, cm_per_px: float) -> LarynxKernel:
     """The kernel the settings ask for (``kernel=rig|frame|<file>``), at the capture's scale ``cm_per_px``."""
-    size = int(settings.kernel_size or kernel_size_at(cm_per_px))
+    size = int(settings.kernel_size or kernel_size_at(cm_per_px, first_frame.shape))
     if settings.kernel == "rig":
         rig = rig_loader()
         return calibrate_window(rig_kernel(rig, cm_per_px, size), rig, config)

@@ -75,7 +75,7 @@ class SearchConfig:
 
     band_rows: int = 24             # search +- rows around the prediction (a swallow moves < 8 px/frame at 30 fps)
     band_cols: int = 8              # search +- columns
-    max_jump_px: float = 10.0       # largest accepted distance from the prediction, per frame since the last match
+    max_jump_px: float = 10.0       # accepted distance from the prediction per frame since the last match (+ its speed)
     min_confidence: float = 0.2     # lowest accepted peak (weighted) NCC; the real HACK larynx under the jaw: 0.33+
     reacquire_after: int = 10       # consecutive rejections before searching the whole frame again
     subpixel: bool = True

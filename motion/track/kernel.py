@@ -27,12 +27,20 @@ from motion.track.sources import MIN_NORM, check_normal_map, decode_frame, float
 from scene.render import DEFAULT_CM_PER_PX, NeckRenderer, neck_camera
 
 KERNEL_SIZE = 70                 # the paper's 70x70x3 kernel, pixels at 0.08 cm/px (5.6 cm)
+# A neck filling the frame (6.4 cm on 256 px at 40 px/cm, real and built-in rig, the larynx rising to the
+# frame's top edge): R^2 0.873 / 0.954 with the 5.6 cm kernel, 0.871 / 0.952 with 4.0 cm (5/8 of the frame),
+# 0.865 / 0.944 with 3.2 cm, 0.510 / 0.952 with 2.4 cm (benchmarks/README.md); 5/8 costs a third less to set up.
+KERNEL_FRAME_SHARE = 0.625
 CONTEXT_MARGIN = 96              # px of rendered view around the rig's kernel (band-pass context)
 
 
-def kernel_size_at(cm_per_px: float) -> int:
-    """The kernel's side in pixels at ``cm_per_px``: ``KERNEL_SIZE`` at 0.08 cm/px, the same 5.6 cm at others."""
-    return max(5, int(round(KERNEL_SIZE * DEFAULT_CM_PER_PX / float(cm_per_px))))
+def kernel_size_at(cm_per_px: float, frame: tuple[int, ...] | None = None) -> int:
+    """The kernel's side in pixels at ``cm_per_px``: ``KERNEL_SIZE`` at 0.08 cm/px, the same 5.6 cm at others,
+    and at most ``KERNEL_FRAME_SHARE`` of the short side of frames of shape ``frame`` (h, w, ...) when given."""
+    size = int(round(KERNEL_SIZE * DEFAULT_CM_PER_PX / float(cm_per_px)))
+    if frame is not None:
+        size = min(size, int(KERNEL_FRAME_SHARE * min(frame[:2])))
+    return max(5, size)
 
 
 def bandpass(normals: np.ndarray, config: BandpassConfig) -> np.ndarray:

@@ -5,11 +5,14 @@ Each frame's search window and the kernel's template go through the same band-pa
 no mean left to remove) over the three channels, each kernel pixel weighted by the match window
 (``match_window``), within a search band of +-``band_rows`` rows and +-``band_cols`` columns around the
 predicted position (the whole frame on the first frame without an initial position, and again after
-``reacquire_after`` rejected frames); sub-pixel peak by a 2-D quadratic on the 3x3 scores around the
-maximum.  confidence = the peak's weighted normalised correlation (clipped to [0, 1]).  A match below
-``min_confidence``, further than ``max_jump_px`` (times the frames since the last accepted one) from
-the prediction, or lying on the band's border (the true peak may be beyond it) is rejected: the frame
-keeps the last accepted position and gets confidence 0.
+``reacquire_after`` rejected frames; there the kernel lies inside the frame), within the band the kernel
+hanging over the frame's edges where the larynx nears them (its centre in the frame; the correlation
+normalised over the part of it the frame shows: a neck filling the frame); sub-pixel peak by a 2-D
+quadratic on the 3x3 scores around the maximum.  confidence = the peak's weighted normalised correlation
+(clipped to [0, 1]).  A match below ``min_confidence``, further from the prediction than ``max_jump_px``
+times the frames since the last accepted one (on the frame right after it, plus the speed the prediction
+moved on by: :meth:`LarynxTracker.jump_tolerance`), or lying on the band's border (the true peak may be beyond it) is
+rejected: the frame keeps the last accepted position and gets confidence 0.
 
 With a neck model (``motion.track.neck``) each frame first measures the neck's own displacement at the
 larynx; the tracker keeps the larynx's position relative to the neck (its slide) and predicts the next
@@ -37,6 +40,8 @@ from motion.track.config import TrackerConfig
 from motion.track.kernel import LarynxKernel, bandpass, bandpass_margins, match_window
 from motion.track.neck import NeckModel, NeckPatches
 from motion.track.scores import subpixel_peak
+
+MIN_TEMPLATE_SHARE = 0.5        # of the kernel's weighted energy a placement over the frame's edge must show
 
 
 @dataclass
@@ -90,18 +95,26 @@ class LarynxTracker:
 
     def search(self, normals: np.ndarray, around: tuple[float, float] | None) -> tuple[float, float, float, bool]:
         """Best (x, y, score, inside) within the band around ``around`` (the whole frame if None); ``inside``
-        is False when the best score lies on the band's border (the true peak may lie beyond it)."""
+        is False when the best score lies on the band's border (the true peak may lie beyond it).
+
+        Within the band the kernel may hang over the frame's edges as long as its centre lies in the frame: a
+        larynx near the edge of a close-up (a neck filling the frame) is matched by the part of the kernel the
+        frame shows (:func:`overlap_scores`)."""
         search = self.config.search
         kw, kh = self.kernel.size
         h, w = normals.shape[:2]
         cx, cy = self.kernel.centre
         if around is None:
+            # Top-left corners of the kernel inside the frame: a larynx first found over the frame's edge
+            # would be found by too little of the kernel (noise matches a small part as well).
             x0, y0, x1, y1 = 0, 0, w - kw, h - kh
         else:
-            # Top-left corners of the kernel whose centre lies within the band.
+            # Top-left corners of the kernel whose centre lies in the frame and in the band.
+            lo_x, hi_x = math.ceil(-cx), math.floor(w - 1 - cx)
+            lo_y, hi_y = math.ceil(-cy), math.floor(h - 1 - cy)
             tx, ty = int(round(around[0] - cx)), int(round(around[1] - cy))
-            x0, x1 = max(0, tx - search.band_cols), min(w - kw, tx + search.band_cols)
-            y0, y1 = max(0, ty - search.band_rows), min(h - kh, ty + search.band_rows)
+            x0, x1 = max(lo_x, tx - search.band_cols), min(hi_x, tx + search.band_cols)
+            y0, y1 = max(lo_y, ty - search.band_rows), min(hi_y, ty + search.band_rows)
             if x1 < x0 or y1 < y0:
                 return float("nan"), float("nan"), -1.0, False
         # Band-pass the window with the context the filters need, so it holds what filtering the whole
@@ -110,8 +123,14 @@ class LarynxTracker:
         ya, yb = max(0, y0 - margin_rows), min(h, y1 + kh + margin_rows)
         xa, xb = max(0, x0 - margin_cols), min(w, x1 + kw + margin_cols)
         region = bandpass(normals[ya:yb, xa:xb], self.config.bandpass)
-        window = np.ascontiguousarray(region[y0 - ya:y1 + kh - ya, x0 - xa:x1 + kw - xa])
-        scores = cv2.matchTemplate(window, self.template, cv2.TM_CCORR_NORMED, mask=self.weights)
+        cut_rows = slice(max(0, y0) - ya, min(h, y1 + kh) - ya)
+        cut_cols = slice(max(0, x0) - xa, min(w, x1 + kw) - xa)
+        window = np.ascontiguousarray(region[cut_rows, cut_cols])
+        pads = (max(0, -y0), max(0, y1 + kh - h), max(0, -x0), max(0, x1 + kw - w))
+        if any(pads):
+            scores = overlap_scores(window, pads, self.template, self.weights)
+        else:
+            scores = cv2.matchTemplate(window, self.template, cv2.TM_CCORR_NORMED, mask=self.weights)
         _, peak, _, (col, row) = cv2.minMaxLoc(scores)
         rows, cols = scores.shape
         inside = (0 < row < rows - 1 or rows == 1) and (0 < col < cols - 1 or cols == 1)
@@ -132,6 +151,13 @@ class LarynxTracker:
             return None
         offset = self._offset()
         return (self.slide[0] + self.velocity[0] + offset[0], self.slide[1] + self.velocity[1] + offset[1])
+
+    def jump_tolerance(self, max_jump_px: float) -> float:
+        """The largest accepted distance (px) of a match from the prediction: ``max_jump_px`` per frame since the
+        last accepted one, plus on the frame right after it the speed the prediction moved on by (it misses by
+        about that much when the larynx turns: a swallow falling back from its top moves 11 px per frame at
+        12 px/cm); after a rejection the tolerance has grown by ``max_jump_px`` instead."""
+        return max_jump_px * (self.missed + 1) + (math.hypot(*self.velocity) if self.missed == 0 else 0.0)
 
     def _start_patches(self, normals: np.ndarray, at: tuple[float, float]) -> None:
         """Take the neck's patches around the larynx position ``at`` of this frame (the neck's origin)."""
@@ -174,7 +200,7 @@ class LarynxTracker:
         x, y, score, inside = self.search(normals, None if reacquire else predicted)
         ok = inside and score >= cfg.min_confidence
         if ok and not reacquire:
-            ok = math.hypot(x - predicted[0], y - predicted[1]) <= cfg.max_jump_px * (self.missed + 1)
+            ok = math.hypot(x - predicted[0], y - predicted[1]) <= self.jump_tolerance(cfg.max_jump_px)
         if ok:
             if self.patches is None:                              # the first position found: the neck's origin
                 self._start_patches(normals, (x, y))
@@ -250,3 +276,26 @@ def track_sequence(frames: Iterable[np.ndarray], kernel: LarynxKernel, config: T
                   np.array([np.clip(m.score, 0.0, 1.0) if m.accepted else 0.0 for m in matches]),
                   np.array([m.accepted for m in matches]), np.array([m.neck for m in matches], dtype=np.float64))
     return smooth_track(track, tracker.config.smooth_frames)
+
+
+def overlap_scores(window: np.ndarray, pads: tuple[int, int, int, int], template: np.ndarray,
+                   weights: np.ndarray | None) -> np.ndarray:
+    """TM_CCORR_NORMED scores [rows, cols] of ``template`` [kh,kw,3] weighted by ``weights`` [kh,kw] (None: all
+    pixels alike) in ``window`` [h,w,3], the part of the frame the placements overlap, which lies
+    ``pads`` (top, bottom, left, right) pixels inside their extent: normalised over the overlap of template and
+    frame, sum(m^2 t f) / sqrt(sum(m^2 t^2) sum(m^2 f^2)) over the template's pixels in the frame (the whole
+    template where it lies inside: then ``cv2.matchTemplate``'s own masked TM_CCORR_NORMED).  Placements
+    whose part in the frame holds less than ``MIN_TEMPLATE_SHARE`` of the template's weighted energy score -1."""
+    top, bottom, left, right = pads
+    weights = np.ones(template.shape[:2], np.float32) if weights is None else weights
+    squared = np.ascontiguousarray(weights * weights, dtype=np.float32)
+    padded = cv2.copyMakeBorder(window, top, bottom, left, right, cv2.BORDER_CONSTANT, value=0)
+    inside = cv2.copyMakeBorder(np.ones(window.shape[:2], np.float32), top, bottom, left, right,
+                                cv2.BORDER_CONSTANT, value=0)
+    products = cv2.matchTemplate(padded, np.ascontiguousarray(template * squared[..., None]), cv2.TM_CCORR)
+    frame_energy = cv2.matchTemplate(np.einsum("hwc,hwc->hw", padded, padded), squared, cv2.TM_CCORR)
+    template_energy = np.einsum("hwc,hwc->hw", template, template) * squared
+    shown = cv2.matchTemplate(inside, np.ascontiguousarray(template_energy), cv2.TM_CCORR)
+    scores = products / np.sqrt(np.maximum(shown * frame_energy, 1e-12))
+    return np.where(shown >= MIN_TEMPLATE_SHARE * float(template_energy.sum()), scores, -1.0).astype(np.float32)
+
