@@ -167,7 +167,7 @@ def test_scan_start_finds_the_torso_under_a_bent_neck(builtin_rig):
     # the torso (nod growing up the neck, an even turn).  The rigid start follows the head and leaves the
     # torso 30-40 degrees off; the neck search (head held, the turn split over the joints) finds it.  (With
     # other noise seeds, 2 of 4, the rigid start turns this capture over: not the search's to fix.)
-    frames = 3
+    frames = 2
     anatomical = np.zeros((frames, builtin_rig.num_joints, 3))
     anatomical[:, 1:, 0] = 0.15 * np.linspace(0.5, 1.0, 7)
     anatomical[:, 1:, 1] = (0.1 + 0.05 * np.arange(frames) / 30)[:, None]
