@@ -38,9 +38,11 @@ from models.rig import HeadNeckModel
 
 MIN_POINTS = 100
 # The first frame's search for the head's turn relative to the torso: +-60 degrees of flexion / extension
-# (about x), +-75 of axial rotation (y), +-30 of lateral bending (z), about the cervical spine's ranges
-# (``data.joint_limits``) and more.
+# (about x), +-75 of axial rotation (y), +-30 of lateral bending (z): the cervical spine's ranges
+# (``data.joint_limits``) with a margin.
 FIRST_RANGE_DEG = (60.0, 75.0, 30.0)
+# Subsample sizes (every k-th, about this many): the neck's and the head's vertices in the search, the scan's
+# points in the rigid start and those the head does not explain.  The cost is k-d tree queries.
 NECK_VERTICES = 600
 RIGID_POINTS = 2000
 REST_POINTS = 400
@@ -188,9 +190,6 @@ class NeckSearch:
     def __init__(self, model: HeadNeckModel, cap_cm: float = 1.5):
         self.model = model
         self.lin = RigLinearisation(model)
-        # Every k-th vertex of the neck (about NECK_VERTICES) and of the head (about HEAD_VERTICES): the
-        # search's cost is the scan's k-d tree queried by these (measured: all 1,930 + 13,000 of the real rig
-        # took 0.6 s a frame).
         neck = torch.nonzero(model.skin_weights[:, -1] <= 0.95).flatten()
         self.neck = neck[:: max(1, len(neck) // NECK_VERTICES)]
         template = model.template.double().numpy()
