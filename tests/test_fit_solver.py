@@ -1,5 +1,5 @@
 """models.fit on the built-in rig: known parameters back from noisy meshes (better than the per-frame
-baseline), placement from scans, the shape offset for another person, bad input.
+baseline), placement from scans, the shape offset for another person, bad input, windows fitted in parallel.
 
 The sequences here are our own sinusoids in the anatomical frames (not the cervical prior the solver's
 settings were measured on); scans and the reshaped person come from ``data.fit_captures``.
@@ -17,6 +17,7 @@ from base.rotations import axis_angle_to_matrix, relative_angle
 from data.fit_captures import PersonConfig, ScanConfig, reshaped_person, scan_sequence
 from models.fit import FitSettings, fit_meshes, fit_scans
 from models.fit.scans import initial_placements, searched_start
+from models.fit.windows import spans
 from models.rig import HeadNeckModel
 
 FAST = dict(iterations=(1, 2, 6), hessian_vertices=600)
@@ -191,3 +192,30 @@ def test_scan_start_finds_the_torso_under_a_bent_neck(builtin_rig):
     assert math.degrees(float(relative_angle(rotation, torso).max())) < 12.0
     fitted_head = rotation @ builtin_rig.head_rotation(theta_start)
     assert math.degrees(float(relative_angle(fitted_head, head).max())) < 1.0
+
+
+def test_windows_tile_the_sequence():
+    for frames, parts, overlap in ((60, 2, 12), (61, 3, 8), (20, 2, 12), (5, 4, 2)):
+        windows = spans(frames, parts, overlap)
+        kept = [(keep_start, keep_stop) for _, _, keep_start, keep_stop in windows]
+        assert kept[0][0] == 0 and kept[-1][1] == frames
+        assert all(a[1] == b[0] for a, b in zip(kept, kept[1:]))
+        assert all(start <= keep_start < keep_stop <= stop for start, stop, keep_start, keep_stop in windows)
+        assert all(stop - start >= 2 * overlap or len(windows) == 1 for start, stop, _, _ in windows)
+    assert len(spans(20, 2, 12)) == 1     # too short to split
+    assert spans(60, 2, 12) == [(0, 36, 0, 30), (24, 60, 30, 60)]
+
+
+def test_windows_in_processes_match_the_whole_sequence(builtin_rig):
+    truth = sequence(builtin_rig, 16, seed=11)
+    calls = []
+    whole = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(**FAST))
+    windowed = fit_meshes(builtin_rig, truth["noisy"].numpy(), FitSettings(workers=2, window_overlap=4, **FAST),
+                          progress=calls.append)
+    assert len(windowed.report["windows"]) == 2 and windowed.theta.shape == whole.theta.shape
+    gap = relative_angle(axis_angle_to_matrix(torch.tensor(windowed.theta[:, 1:])),
+                         axis_angle_to_matrix(torch.tensor(whole.theta[:, 1:])))
+    assert math.degrees(float(gap.max())) < 0.5
+    assert joint_error_deg(windowed, truth) < 1.0 and head_error_deg(builtin_rig, windowed, truth) < 0.2
+    assert abs(windowed.eta - truth["eta"]) < 0.05 and vertex_rms_mm(builtin_rig, windowed, truth) < 0.5
+    assert calls[-1] == 16 and calls == sorted(calls)

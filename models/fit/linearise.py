@@ -65,6 +65,22 @@ class FrameLayout:
         return self.tau + 1
 
 
+@dataclass
+class Skinned:
+    """A batch of B frames posed at ``vertices`` [n] (all when None), kept for the gradient and the Hessian of
+    the same linearisation: the skin weights [n,J], the rest shape x [B,n,3], the transforms C [B,J,3,4]
+    (placement included), their derivatives [B,J,3,4,R], per vertex their blend [B,n,3,4] (L | t) and the
+    posed vertices q = L x + t [B,n,3]."""
+
+    vertices: torch.Tensor | None
+    weights: torch.Tensor
+    rest: torch.Tensor
+    transforms: torch.Tensor
+    derivatives: torch.Tensor
+    blended: torch.Tensor
+    q: torch.Tensor
+
+
 def rodrigues(v: torch.Tensor) -> torch.Tensor:
     """Axis-angle [...,3] -> rotation [...,3,3], smooth at zero (Taylor branch) for forward-mode autograd."""
     angle2 = (v * v).sum(-1)[..., None, None]
@@ -93,6 +109,9 @@ class RigLinearisation:
         self.correctives = (model.shape_basis[e: e + model.num_pose_features].transpose(1, 2).float()
                             if model.num_pose_features else None)          # [P,N,3]
         self.parents = list(model.parents)
+        joints = self.weights.shape[1]
+        pairs = self.weights[:, :, None] * self.weights[:, None, :]
+        self.weight_pairs = pairs.reshape(-1, joints * joints)             # [N,J*J]: w_j w_k per vertex
 
     def transforms(self, rigid: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
         """rigid [B, 6 + 3(J-1)] (r, t, theta[1:]), reference [B,3,3] -> C [B,J,3,4]."""
@@ -157,11 +176,53 @@ class RigLinearisation:
     def pose(self, rigid, psi, tau, eta, reference, offset=None, vertices=None) -> torch.Tensor:
         """Posed vertices in the capture's frame [B,n,3]."""
         with torch.no_grad():
-            transforms = self.transforms(rigid, reference)
-            x = self.rest(rigid[:, 6:].reshape(len(rigid), -1, 3), psi, tau, eta, offset, vertices)
             weights = self.weights if vertices is None else self.weights[vertices]
-            blended = torch.einsum("nj,bjrc->bnrc", weights, transforms)
-            return (blended[..., :3] @ x[..., None])[..., 0] + blended[..., 3]
+            x = self.rest(rigid[:, 6:].reshape(len(rigid), -1, 3), psi, tau, eta, offset, vertices)
+            return self._posed(self._blend(weights, self.transforms(rigid, reference)), x)
+
+    @staticmethod
+    def _blend(weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+        """Per vertex the skin-weighted transform [B,n,3,4] for weights [n,J], transforms [B,J,3,4]: one
+        [n,J] x [J,12B] product."""
+        batch, joints = transforms.shape[:2]
+        flat = transforms.permute(1, 0, 2, 3).reshape(joints, batch * 12)
+        return (weights @ flat).reshape(-1, batch, 3, 4).permute(1, 0, 2, 3)
+
+    @staticmethod
+    def _posed(blended: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """q = L x + t [B,n,3] for blended [B,n,3,4] and rest positions x [B,n,3] (no per-vertex products)."""
+        q = blended[..., 3] + blended[..., 0] * x[..., 0, None]
+        q.addcmul_(blended[..., 1], x[..., 1, None])
+        return q.addcmul_(blended[..., 2], x[..., 2, None])
+
+    def skin(self, rigid, psi, tau, eta, reference, offset=None, vertices=None) -> Skinned:
+        """The frames posed at ``vertices`` with what their gradient and Hessian reuse (``Skinned``)."""
+        derivatives = self.transform_derivatives(rigid, reference)
+        with torch.no_grad():
+            transforms = self.transforms(rigid, reference)
+            weights = self.weights if vertices is None else self.weights[vertices]
+            x = self.rest(rigid[:, 6:].reshape(len(rigid), -1, 3), psi, tau, eta, offset, vertices)
+            blended = self._blend(weights, transforms)
+            return Skinned(vertices, weights, x, transforms, derivatives, blended, self._posed(blended, x))
+
+    @staticmethod
+    def pull_back(skinned: Skinned, vectors: torch.Tensor) -> torch.Tensor:
+        """L^T v [B,n,3] for per-vertex vectors v [B,n,3], L the blended 3x3 of the transforms (placement
+        included)."""
+        linear = skinned.blended
+        back = linear[..., 0, :3] * vectors[..., 0, None]
+        back.addcmul_(linear[..., 1, :3], vectors[..., 1, None])
+        return back.addcmul_(linear[..., 2, :3], vectors[..., 2, None])
+
+    def mean_metric(self, skinned: Skinned, weights: torch.Tensor) -> torch.Tensor:
+        """mean over the frames of weights [B,n] times L^T L [n,3,3] (psi's rest-space information on meshes):
+        L^T L = sum_jk w_j w_k A_j^T A_k, one [n,J*J] x [J*J, 9B] product."""
+        batch, joints = skinned.transforms.shape[:2]
+        a = skinned.transforms[..., :3]
+        pairs = torch.einsum("bjrc,bkrd->jkbcd", a, a).reshape(joints * joints, batch * 9)
+        products = self.weight_pairs if skinned.vertices is None else self.weight_pairs[skinned.vertices]
+        metric = (products @ pairs).reshape(-1, batch, 9)                                      # [n,B,9]
+        return (metric * weights.T[..., None]).mean(1).reshape(-1, 3, 3)
 
     def _features(self, rigid, psi, tau, eta, offset, vertices):
         """The skin weights [n,J] of ``vertices`` and per vertex its weights times [x; 1] for the rest
@@ -174,34 +235,38 @@ class RigLinearisation:
         features = weights[None, :, :, None] * torch.cat([x, x.new_ones(batch, n, 1)], -1)[:, :, None]
         return weights, features.reshape(batch, n, 4 * joints)
 
-    def gradient(self, rigid, psi, tau, eta, reference, rho, offset=None, vertices=None):
-        """J^T rho [B,P], dq/deta . rho [B] for per-vertex vectors rho [B,n,3], and the blended 3x3s
-        [B,n,3,3], without the Jacobian:
-        the rigid part through the [n,4J] features (``linearise``), psi through the expressions seen by the
-        blended 3x3s, tau and eta at the larynx vertices."""
+    def gradient(self, rigid, psi, tau, eta, reference, rho, offset=None, vertices=None,
+                 skinned: Skinned | None = None):
+        """J^T rho [B,P] and dq/deta . rho [B] for per-vertex vectors rho [B,n,3], and the ``Skinned`` frames
+        (``skinned`` when given: the same frames posed at the same vertices), without the Jacobian:
+        the rigid part through the skin-weighted [x; 1] rho^T (the [n,4J] features of ``linearise``), psi
+        through the expressions pulled back by the blended 3x3s, tau and eta at the larynx vertices."""
+        if skinned is None:
+            skinned = self.skin(rigid, psi, tau, eta, reference, offset, vertices)
         batch = rigid.shape[0]
         layout = self.layout
-        jac_c = self.transform_derivatives(rigid, reference)                 # [B,J,3,4,R]
         with torch.no_grad():
-            weights, features = self._features(rigid, psi, tau, eta, offset, vertices)
-            joints = weights.shape[1]
-            projected = features.transpose(1, 2) @ rho                       # [B,4J,3]: (joint, column), row
-            columns = jac_c.permute(0, 1, 3, 2, 4).reshape(batch, 4 * joints, 3, -1)
+            n, joints = skinned.weights.shape
+            # sum_n w_nj [x_n; 1] rho_n^T per joint: [J,n] x [n, 12B], ordered (joint, column), row.
+            x = skinned.rest.permute(1, 0, 2)                               # [n,B,3]
+            outer = torch.cat([x, x.new_ones(n, batch, 1)], -1)[..., :, None] * rho.permute(1, 0, 2)[..., None, :]
+            projected = (skinned.weights.T @ outer.reshape(n, -1)).reshape(joints, batch, 4, 3)
+            projected = projected.permute(1, 0, 2, 3).reshape(batch, 4 * joints, 3)
+            columns = skinned.derivatives.permute(0, 1, 3, 2, 4).reshape(batch, 4 * joints, 3, -1)
             out = rho.new_zeros(batch, layout.size)
             out[:, layout.rigid] = torch.einsum("bkr,bkrp->bp", projected, columns)
-            linear = torch.einsum("nj,bjrc->bnrc", weights, self.transforms(rigid, reference)[..., :3])
-            back = (linear.transpose(-1, -2) @ rho[..., None])[..., 0]       # [B,n,3] in rest space
+            back = self.pull_back(skinned, rho)                             # [B,n,3] in rest space
             expressions = self.expressions_by_vertex if vertices is None else self.expressions_by_vertex[vertices]
-            out[:, layout.psi] = torch.einsum("bnc,nce->be", back, expressions)
+            out[:, layout.psi] = back.reshape(batch, -1) @ expressions.reshape(-1, layout.num_expressions)
             scalar, slope = self._larynx(tau)
             at_larynx = self._gather_larynx(back, vertices) @ self.model.larynx_direction   # [B,M]
             out[:, layout.tau] = (eta[:, None] * slope * at_larynx).sum(1)
-            return out, (scalar * at_larynx).sum(1), linear
+            return out, (scalar * at_larynx).sum(1), skinned
 
     def expression_gram(self, information: torch.Tensor, vertices=None) -> torch.Tensor:
         """sum_n E_n^T A_n E_n [E,E] for rest-space information matrices A [n,3,3] (psi's Hessian block)."""
         expressions = self.expressions_by_vertex if vertices is None else self.expressions_by_vertex[vertices]
-        weighted = information @ expressions                                # [n,3,E]
+        weighted = sum(information[:, :, d, None] * expressions[:, None, d] for d in range(3))   # [n,3,E]
         return weighted.reshape(-1, weighted.shape[-1]).T @ expressions.reshape(-1, weighted.shape[-1])
 
     def _gather_larynx(self, values: torch.Tensor, vertices: torch.Tensor | None) -> torch.Tensor:
@@ -222,12 +287,13 @@ class RigLinearisation:
             weights = self.weights if vertices is None else self.weights[vertices]
             return torch.einsum("nj,bjrc->bnrc", weights, self.transforms(rigid, reference)[..., :3])
 
-    def linearise(self, rigid, psi, tau, eta, reference, offset=None, vertices=None):
+    def linearise(self, rigid, psi, tau, eta, reference, offset=None, vertices=None, derivatives=None):
         """Posed vertices q [B,n,3] and the Jacobian [B,n,3,P] in the frame's unknowns (``FrameLayout``),
-        plus dq/deta [B,n,3] and the blended 3x3 [B,n,3,3] (for the shape offset)."""
+        plus dq/deta [B,n,3] and the blended 3x3 [B,n,3,3] (for the shape offset); ``derivatives``: the
+        transforms' derivatives when already known (``Skinned``)."""
         batch = rigid.shape[0]
         layout = self.layout
-        jac_c = self.transform_derivatives(rigid, reference)
+        jac_c = self.transform_derivatives(rigid, reference) if derivatives is None else derivatives
         with torch.no_grad():
             weights, features = self._features(rigid, psi, tau, eta, offset, vertices)
             n, joints = weights.shape

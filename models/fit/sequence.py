@@ -70,18 +70,35 @@ def fit_sequence(model: HeadNeckModel, data, state: State, settings: FitSettings
     # (constant within a stage, so that Levenberg-Marquardt can compare the energies of its steps).
     levels = [settings.robust_start_cm * (settings.robust_scale_cm / settings.robust_start_cm) ** (k / 2)
               for k in range(3)]
-    scales = [level for level, count in zip(levels, iterations) for _ in range(count)]
-    offsets = np.cumsum([0, *iterations])
-    stages = (("placement", placement, False), ("neck", neck, False), ("all", everything, True))
-    for (name, mask, with_eta), first, count in zip(stages, offsets, iterations):
-        if count:
-            after = (lambda s: shape.step(solver, s)) if (shape is not None and name == "all") else None
-            state = solver.run_stage(state, mask, count, scales[first: first + count], with_eta, name, after)
+    # Meshes: the placement and neck stages on a subsample of the vertices, the last on every vertex (with the
+    # shape offset, which is fitted at every vertex, every stage on every vertex).
+    coarse = None
+    if hasattr(data, "subset") and shape is None:
+        coarse = coarse_vertices(model.num_vertices, settings.coarse_vertices)
+    plan = (("placement", placement, False, levels[0], iterations[0], coarse),
+            ("neck", neck, False, levels[1], iterations[1], coarse),
+            ("all", everything, True, levels[2], iterations[2], None))
+    for name, mask, with_eta, level, count, subset in plan:
+        if not count:
+            continue
+        if hasattr(data, "subset"):
+            data.subset = subset
+        after = (lambda s: shape.step(solver, s)) if (shape is not None and name == "all") else None
+        state = solver.run_stage(state, mask, count, [level], with_eta, name, after)
+    if hasattr(data, "subset"):
+        data.subset = None
     rms = final_rms(lin, data, state, settings)
     solver._passes_done = solver._passes_total
     if progress is not None:
         progress(T)
     return assemble(model, solver, state, rms, time.perf_counter() - started)
+
+
+def coarse_vertices(count: int, wanted: int) -> torch.Tensor | None:
+    """Every k-th of ``count`` vertices, about ``wanted`` of them (None: all, when ``wanted`` is 0 or more)."""
+    if wanted <= 0 or wanted >= count:
+        return None
+    return torch.arange(0, count, count // wanted)
 
 
 def final_rms(lin: RigLinearisation, data, state: State, settings: FitSettings) -> np.ndarray:

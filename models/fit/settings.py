@@ -40,8 +40,12 @@ class FitSettings:
     neck_prior_deg: float = 0.5          # std of an adjacent pair's difference (anatomical frames)
     psi_scale: float = 3.0               # std of the weak pull of psi to zero
     iterations: tuple[int, int, int] = (2, 3, 6)  # Gauss-Newton iterations: placement, + neck, + all
+    tolerance: float = 1e-4              # a stage ends once a step lowers the energy by less than this share
     damping: float = 1e-4                # initial Levenberg-Marquardt damping (relative to the diagonal)
+    coarse_vertices: int = 2000          # meshes, no fit_shape: placement and neck stages on ~this many vertices
     hessian_vertices: int = 2000         # Gauss-Newton Hessian from about this many vertices (the gradient: all)
+    workers: int = 1                     # meshes: overlapping windows of the sequence fitted at once, a process each
+    window_overlap: int = 12             # ... frames shared by adjacent windows (each keeps its half)
     chunk: int = 16                      # frames linearised at once (memory ~ chunk * 14 MB on the real rig)
     shape_laplacian_cm: float = 0.003    # shape offset: std of its graph Laplacian (I - D^-1 A) per vertex
     shape_iterations: int = 300          # shape offset: conjugate-gradient iterations per step

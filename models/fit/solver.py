@@ -50,6 +50,22 @@ class State:
                 self.reference.expand(len(rigid), 3, 3))
 
 
+@dataclass
+class System:
+    """The energy at one state and its normal equations (H [T,P,P] and g [T,P] with every prior, before the
+    damping), the eta terms, the psi weights held at a bound [T,P], the data term's RMS [T] and Hessian."""
+
+    total: float
+    robust_cm: float
+    H: np.ndarray
+    g: np.ndarray
+    eta_terms: tuple
+    bound: np.ndarray
+    rms: np.ndarray
+    data_hessian: np.ndarray
+    psi_subsampled: np.ndarray
+
+
 def geman_mcclure(squared: torch.Tensor, scale: float) -> torch.Tensor:
     """IRLS weight of Geman-McClure's rho(r) = r^2 s^2 / (r^2 + s^2) at squared residual norms (cm^2)."""
     return (scale**2 / (scale**2 + squared)) ** 2
@@ -113,10 +129,17 @@ class Solver:
         for start in range(0, T, self.settings.chunk):
             index = slice(start, min(start + self.settings.chunk, T))
             frames = list(range(index.start, index.stop))
-            probe = self.lin.pose(*state.frames(index), offset=state.offset)
+            unknowns = state.frames(index)
             self.data.robust_cm = robust_cm
-            vertices, weights, targets, normals = self.data.rows(frames, probe)
-            q = probe if vertices is None else probe[:, vertices]
+            if hasattr(self.data, "subset"):   # rows known before posing (meshes): pose only those vertices
+                skinned = self.lin.skin(*unknowns, offset=state.offset, vertices=self.data.subset)
+                vertices, weights, targets, normals = self.data.rows(frames, skinned.q)
+                q = skinned.q
+            else:
+                probe = self.lin.pose(*unknowns, offset=state.offset)
+                vertices, weights, targets, normals = self.data.rows(frames, probe)
+                q = probe if vertices is None else probe[:, vertices]
+                skinned = self.lin.skin(*unknowns, offset=state.offset, vertices=vertices)
             diff = q - targets                                               # [b,n,3]
             if normals is None:
                 squared = (diff * diff).sum(-1)
@@ -139,8 +162,8 @@ class Solver:
                 rho = w[..., None] * diff
             else:
                 rho = w[..., None] * (normals * along[..., None] + share * diff)
-            grad, grad_eta, linear = self.lin.gradient(*state.frames(index), rho, offset=state.offset,
-                                                       vertices=vertices)
+            grad, grad_eta, _ = self.lin.gradient(*unknowns, rho, offset=state.offset, vertices=vertices,
+                                                  skinned=skinned)
             g[index] = grad.double().numpy()
             eta_g += float(grad_eta.sum())
             # The Hessian on every k-th row.
@@ -149,7 +172,8 @@ class Solver:
             pick = torch.arange(0, n, stride)
             scale = n / len(pick)
             sub = pick if vertices is None else vertices[pick]
-            _, jac, deta, _ = self.lin.linearise(*state.frames(index), offset=state.offset, vertices=sub)
+            _, jac, deta, _ = self.lin.linearise(*unknowns, offset=state.offset, vertices=sub,
+                                                 derivatives=skinned.derivatives)
             root = (w[:, pick] * scale).sqrt()[..., None]
             if normals is None:
                 rows_j = (root[..., None] * jac).reshape(len(frames), -1, P)
@@ -166,13 +190,12 @@ class Solver:
             self.psi_subsampled[index] = H[index][:, self.layout.psi, self.layout.psi]
             # psi's block from every vertex (expressions are local: a subsample misses the small ones), with
             # the chunk's mean information in rest space, L^T A L.
-            if normals is None:
-                information = w[..., None, None] * (linear.transpose(-1, -2) @ linear)
-            else:
-                rest_normals = (linear.transpose(-1, -2) @ normals[..., None])[..., 0]
-                information = w[..., None, None] * (rest_normals[..., :, None] * rest_normals[..., None, :]
-                                                    + share * linear.transpose(-1, -2) @ linear)
-            gram = self.lin.expression_gram(information.mean(0), vertices).double().numpy()
+            information = self.lin.mean_metric(skinned, w * (1.0 if normals is None else share))   # [n,3,3]
+            if normals is not None:
+                rest_normals = self.lin.pull_back(skinned, normals)
+                outer = rest_normals[..., :, None] * rest_normals[..., None, :]           # [b,n,3,3]
+                information = information + (w[..., None, None] * outer).mean(0)
+            gram = self.lin.expression_gram(information, vertices).double().numpy()
             H[index, self.layout.psi, self.layout.psi] = gram
             if with_eta:
                 h_eta[index] = (rows_j.transpose(1, 2) @ rows_e[..., None])[..., 0].double().numpy()
@@ -350,74 +373,94 @@ class Solver:
         new.eta = (state.eta + float(np.clip(d_eta, -0.5, 0.5))).clamp(0, 3)
         return new
 
+    def system(self, state: State, robust_cm: float, with_eta: bool, weights: np.ndarray) -> System:
+        """The energy at ``state`` and its damped-free normal equations, every term included."""
+        H, g, data_energy, rms, eta_terms = self.normal_equations(state, robust_cm, with_eta)
+        HL, gL, eL = self.limit_terms(state)
+        lay = self.layout
+        theta = state.rigid[:, lay.theta].double().numpy()
+        HL[:, lay.theta, lay.theta] += self.neck
+        gL[:, lay.theta] += theta @ self.neck
+        eL = eL + np.einsum("ti,ij,tj->t", theta, self.neck, theta)
+        x = self.flat(state)
+        wp, gp, ep = self.psi_terms(state)
+        total = (data_energy.sum() + eL.sum() + self.temporal_energy(x, weights) + ep.sum()
+                 + (self.extra_energy(state) if self.extra_energy else 0.0))
+        data_hessian = H.copy()
+        H += HL
+        g += gL + self.temporal_gradient(x, weights)
+        H[:, lay.psi, lay.psi] += np.eye(lay.num_expressions) * wp
+        g[:, lay.psi] += gp
+        # Projected Gauss-Newton on psi's box [0, 1]: a weight at a bound that the gradient pushes outwards is
+        # held for this step (clamping after a free step stalls: measured 0.6 against 0.2 mm).
+        psi = state.psi.double().numpy()
+        bound = np.zeros(g.shape, bool)
+        bound[:, lay.psi] = ((psi <= 0) & (g[:, lay.psi] > 0)) | ((psi >= 1) & (g[:, lay.psi] < 0))
+        return System(float(total), robust_cm, H, g, eta_terms, bound, rms, data_hessian, self.psi_subsampled)
+
     def run_stage(self, state: State, mask: np.ndarray, iterations: int, robust: list[float], with_eta: bool,
                   name: str, after_step: Callable[[State], State] | None = None) -> State:
+        """At most ``iterations`` accepted steps of Levenberg-Marquardt on the unknowns of ``mask``; a step that
+        raises the energy is taken back (the linearisation before it is kept, not recomputed) with ten times
+        the damping; the stage ends early once an accepted step lowers the energy by less than
+        ``FitSettings.tolerance`` of it."""
         weights = self.temporal_weights()
         started = time.perf_counter()
-        previous = None
-        reverted = False
-        k = 0
-        attempts = 0
-        while k < iterations and attempts < 3 * iterations:
-            attempts += 1
+        previous: tuple[State, System] | None = None   # the last state a step was taken from
+        current: System | None = None                   # the linearisation of ``state`` when already known
+        reverted = converged = False
+        k = linearisations = 0
+        while k < iterations and linearisations < 3 * iterations:
             robust_cm = robust[min(k, len(robust) - 1)]
-            H, g, data_energy, rms, eta_terms = self.normal_equations(state, robust_cm, with_eta)
-            HL, gL, eL = self.limit_terms(state)
-            theta = state.rigid[:, self.layout.theta].double().numpy()
-            HL[:, self.layout.theta, self.layout.theta] += self.neck
-            gL[:, self.layout.theta] += theta @ self.neck
-            eL = eL + np.einsum("ti,ij,tj->t", theta, self.neck, theta)
-            x = self.flat(state)
-            total = (data_energy.sum() + eL.sum() + self.temporal_energy(x, weights)
-                     + self.psi_terms(state)[2].sum() + (self.extra_energy(state) if self.extra_energy else 0.0))
-            worse = not np.isfinite(total) or (previous is not None and total > previous[0] * (1 + 1e-6)
-                                               and previous[2] == robust_cm)
+            if current is None:
+                current = self.system(state, robust_cm, with_eta, weights)
+                linearisations += 1
+            last = None if previous is None else previous[1]
+            worse = not np.isfinite(current.total) or (last is not None and current.total > last.total * (1 + 1e-6)
+                                                       and last.robust_cm == robust_cm)
             if worse and previous is not None:
-                state = previous[1]          # the step made it worse: back, more damping, and again
+                state, current = previous    # the step made it worse: back, more damping, and again
                 self.damping *= 10
                 reverted = True
                 continue
-            if not reverted:                 # an accepted step (not the re-evaluation after a rejected one)
+            if not reverted:                 # an accepted step (not the same state after a rejected one)
                 self.damping = max(self.damping / 3, 1e-7)
+                if last is not None and last.robust_cm == robust_cm and \
+                        last.total - current.total <= self.settings.tolerance * last.total:
+                    converged = True
+                    break
             reverted = False
-            self.data_hessian = H.copy()
-            H += HL
-            g += gL + self.temporal_gradient(x, weights)
-            wp, gp, _ = self.psi_terms(state)
-            lay = self.layout
-            H[:, lay.psi, lay.psi] += np.eye(lay.num_expressions) * wp
-            g[:, lay.psi] += gp
-            self.rms = rms
-            # Projected Gauss-Newton on psi's box [0, 1]: a weight at a bound that the gradient pushes outwards
-            # is held for this step (clamping after a free step stalls: measured 0.6 against 0.2 mm).
-            psi = state.psi.double().numpy()
-            bound = np.zeros(g.shape, bool)
-            bound[:, lay.psi] = ((psi <= 0) & (g[:, lay.psi] > 0)) | ((psi >= 1) & (g[:, lay.psi] < 0))
+            self.data_hessian, self.rms, self.psi_subsampled = current.data_hessian, current.rms, current.psi_subsampled
             try:
-                if not (np.isfinite(H).all() and np.isfinite(g).all()):
+                if not (np.isfinite(current.H).all() and np.isfinite(current.g).all()):
                     raise np.linalg.LinAlgError("non-finite normal equations")
                 try:
-                    dx, d_eta = self.solve(H, g, weights, mask, eta_terms, self.damping, bound)
+                    dx, d_eta = self.solve(current.H, current.g, weights, mask, current.eta_terms, self.damping,
+                                           current.bound)
                 except np.linalg.LinAlgError:
                     # psi's block from every vertex against the subsampled cross terms can leave the reduced
                     # system indefinite; with the subsample's own block added it is positive definite.
-                    H[:, lay.psi, lay.psi] += self.psi_subsampled
-                    dx, d_eta = self.solve(H, g, weights, mask, eta_terms, self.damping, bound)
+                    H = current.H.copy()
+                    H[:, self.layout.psi, self.layout.psi] += current.psi_subsampled
+                    dx, d_eta = self.solve(H, current.g, weights, mask, current.eta_terms, self.damping,
+                                           current.bound)
             except np.linalg.LinAlgError as error:   # no step from here: back to the last state, more damping
                 self.report.setdefault("failed_solves", []).append(f"{name}: {error}")
                 if previous is not None:
-                    state = previous[1]
+                    state, current = previous
                 self.damping *= 10
+                linearisations += 1      # counts towards the attempts' bound
                 continue
-            previous = (total, state, robust_cm)
+            previous = (state, current)
             state = self.apply(state, dx, d_eta if with_eta else 0.0)
+            current = None
             if after_step is not None:
                 state = after_step(state)
-            self.report["iterations"].append({"stage": name, "energy": float(total), "robust_cm": robust_cm,
+            self.report["iterations"].append({"stage": name, "energy": previous[1].total, "robust_cm": robust_cm,
                                               "damping": self.damping})
             k += 1
         self.report["stages"].append({"stage": name, "seconds": time.perf_counter() - started,
-                                      "attempts": attempts})
+                                      "attempts": linearisations, "converged": converged})
         return state
 
 

@@ -5,7 +5,7 @@
 - :mod:`motion.fit.outputs`: the fit as ``params.npz``, ``plot.png``, ``report.json`` and the log's summary;
 - the optimisation itself is ``models.fit`` (``fit_meshes``, ``fit_scans``).
 """
-from motion.fit.cli import FitCli, run, solver_settings
-from motion.fit.inputs import Capture, check_size, read_capture
+from motion.fit.cli import run
+from motion.fit.inputs import read_capture
 
-__all__ = ["Capture", "FitCli", "check_size", "read_capture", "run", "solver_settings"]
+__all__ = ["read_capture", "run"]

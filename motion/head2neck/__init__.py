@@ -5,25 +5,8 @@
 - :mod:`motion.head2neck.cli`: the command line (its docstring: inputs, conventions, outputs).
 """
 
-from motion.head2neck.cli import Head2NeckCli, run
-from motion.head2neck.inputs import (
-    INPUT_FORMATS,
-    UNITS,
-    check_rotations,
-    head_rotations_from_ypr,
-    read_head_rotations,
-    recentered,
-)
+from motion.head2neck.cli import run
+from motion.head2neck.inputs import UNITS, head_rotations_from_ypr, read_head_rotations, recentered
 from motion.head2neck.loading import load_head2neck
 
-__all__ = [
-    "Head2NeckCli",
-    "INPUT_FORMATS",
-    "UNITS",
-    "check_rotations",
-    "head_rotations_from_ypr",
-    "load_head2neck",
-    "read_head_rotations",
-    "recentered",
-    "run",
-]
+__all__ = ["UNITS", "head_rotations_from_ypr", "load_head2neck", "read_head_rotations", "recentered", "run"]
