@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 
 from base.cli import compose_config, to_dataclass
 from base.errors import InputError
-from tasks.loop import fit
+from tasks.members import train
 from tasks.run_folder import discard_unstarted_run
 
 
@@ -30,7 +30,7 @@ from tasks.run_folder import discard_unstarted_run
 def main(cfg: DictConfig) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        fit(cfg, run_dir)
+        train(cfg, run_dir)
     except InputError as e:  # bad data or a refused resume: the message, status 2, no traceback (base.cli)
         print(f"error: {e}", file=sys.stderr)
         if not cfg.resume:
