@@ -36,7 +36,7 @@ Modules: :mod:`.config` (sizes, data fields), :mod:`.attention`, :mod:`.encoder`
 per-frame version of its module beside it), :mod:`.folding` (weights laid out for one frame, the members of an
 ensemble stacked), :mod:`.model` (the network, :func:`build_member`, :func:`transfer_weights`,
 :func:`predict_tau`), :mod:`.ensemble` (K networks averaged, :func:`build_model` for either), :mod:`.streaming`
-(:class:`LarynxStream`, one or K members per call), :mod:`.compat` (checkpoints of options this version removed).
+(:class:`LarynxStream`, one or K members per call).
 
 Conventions (shapes carry a batch B and frames T):
 - psi [B,T,55]: expression weights in ``data.expressions.EXPRESSION_NAMES`` order, at
@@ -58,7 +58,6 @@ from .attention import (
     step_bias,
 )
 from .block import Block, BlockFrameWeights, BlockState, block_frame, cross_frame
-from .compat import RemovedOptionError, current_config, removed_options
 from .config import DATA_KEYS, SIZES, LarynxDataFields, LarynxTransformerConfig
 from .encoder import CausalConv, EncoderFrameWeights, EncoderState, ExpressionEncoder, Smoothing, encoder_frame
 from .ensemble import LarynxEnsemble, build_model, ensemble_of, with_subjects
@@ -68,9 +67,9 @@ from .streaming import EncodedFrame, FrameWeights, LarynxStream, frame_weights, 
 __all__ = [
     "DATA_KEYS", "SIZES", "STYLE_TABLES", "Block", "BlockFrameWeights", "BlockState", "CausalConv", "CrossAttention",
     "EncodedFrame", "EncoderFrameWeights", "EncoderState", "ExpressionEncoder", "FrameWeights", "LarynxDataFields",
-    "LarynxEnsemble", "LarynxStream", "LarynxTransformer", "LarynxTransformerConfig", "RemovedOptionError",
+    "LarynxEnsemble", "LarynxStream", "LarynxTransformer", "LarynxTransformerConfig",
     "SelfAttention", "Smoothing", "WindowCache", "alibi_slopes", "attend_one", "banded_attention", "block_frame",
-    "build_member", "build_model", "cross_frame", "current_config", "encoder_frame", "ensemble_of", "frame_weights",
-    "generate", "predict_tau", "relative_bias", "removed_options", "step_bias", "tensor_bytes", "transfer_weights",
+    "build_member", "build_model", "cross_frame", "encoder_frame", "ensemble_of", "frame_weights",
+    "generate", "predict_tau", "relative_bias", "step_bias", "tensor_bytes", "transfer_weights",
     "trimmed_mean", "with_subjects",
 ]

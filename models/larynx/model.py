@@ -15,7 +15,6 @@ from base.errors import InputError
 from data.expressions import NUM_EXPRESSIONS
 
 from .block import Block
-from .compat import current_config
 from .config import DATA_KEYS, SIZES, LarynxDataFields, LarynxTransformerConfig
 from .encoder import ExpressionEncoder
 from .streaming import LarynxStream, generate
@@ -118,10 +117,8 @@ class LarynxTransformer(nn.Module):
 
 def build_member(model_config: dict) -> LarynxTransformer:
     """The network of ``model_config``: exactly the fields of :class:`LarynxTransformerConfig`
-    (the sizes) and of :class:`LarynxDataFields` (from the training data), after :mod:`.compat` drops the
-    options this version removed (at their neutral values); missing or unknown keys, or sizes the config
-    rejects, are a ValueError (a :class:`~models.larynx.compat.RemovedOptionError` for a removed option)."""
-    model_config = current_config(model_config)
+    (the sizes) and of :class:`LarynxDataFields` (from the training data); missing or unknown keys (an option
+    an earlier version had), or sizes the config rejects, are a ValueError."""
     missing = [k for k in SIZES + DATA_KEYS if k not in model_config]
     unknown = sorted(set(model_config) - set(SIZES) - set(DATA_KEYS))
     if missing or unknown:

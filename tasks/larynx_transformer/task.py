@@ -34,7 +34,6 @@ from models.larynx import (
     LarynxTransformerConfig,
     build_member,
     ensemble_of,
-    removed_options,
     transfer_weights,
 )
 from models.pretrained import default_checkpoint
@@ -69,10 +68,10 @@ def warm_start(model, init_from: str, member: int = 0) -> None:
         raise InputError(f"task.init_from={init_from}: {e}") from None
     source_config, source = member_weights(state, member)
     state = {"model_config": source_config, "model": source}
-    removed = removed_options(state["model_config"])
-    if removed:
-        raise InputError(f"task.init_from={init_from}: {path} was trained with {', '.join(removed)}, removed in "
-                         f"this version: its weights do not fit this model")
+    try:
+        build_member(source_config)  # a config of options this version does not have is refused
+    except ValueError as e:
+        raise InputError(f"task.init_from={init_from}: {path} does not fit this model: {e}") from None
     try:
         transfer_weights(model, state["model"])
     except ValueError as e:
