@@ -172,11 +172,18 @@ def test_cuda_and_mixed_precision_are_refused_without_a_gpu(tmp_path):
     assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
 
 
-def test_an_unknown_device_is_one_line_and_status_2(capsys):
-    with pytest.raises(SystemExit) as stop:
-        train.check_command_line(["trainer.device=gpu"])
-    assert stop.value.code == 2
-    assert capsys.readouterr().err == "error: trainer: device is 'gpu', expected one of auto, cpu, cuda\n"
+def test_an_unknown_device_or_key_is_one_line_and_status_2(tmp_path, capsys, monkeypatch):
+    """What the trainer's schema refuses and what hydra cannot compose: one line, status 2, no run folder."""
+    monkeypatch.setattr(sys, "argv", ["train.py"])
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "0")  # train.run sets it; restored after the test
+    quiet = ["hydra/job_logging=disabled", "hydra/hydra_logging=disabled", f"hydra.run.dir={tmp_path / 'run'}"]
+    device = "error: trainer: device is 'gpu', expected one of auto, cpu, cuda\n"
+    for argv, message in ((["trainer.device=gpu"], device), (["trainer.speed=2"], "error: Could not override")):
+        with pytest.raises(SystemExit) as stop:
+            train.run([*argv, *quiet])
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.startswith(message) and err.count("\n") == 1, err
+        assert not (tmp_path / "run").exists()
 
 
 def test_a_cuda_run_of_a_task_that_cannot_move_is_refused(monkeypatch):
