@@ -9,7 +9,7 @@ shared machine's load falls on both alike; with ``--before``, also ``python trai
 before the members shared their data and ran in parallel) with the same settings, alternating too.  ``data=pairs``
 trains on 13 takes of 40 s (4 people; ``data.synthetic_larynx``, written to ``runs/bench_member_workers/pairs/``),
 as a new user's first paired captures.  Prints each run's wall time and CPU time (the run and its worker
-processes), and the ratios.  ``--override`` shortens the runs (e.g. ``task.max_steps=100``, a cap on the length the
+processes), and the ratios.  ``--override`` shortens the runs (e.g. ``task.most_steps=100``, a cap on the length the
 task chooses, ``trainer.max_steps=100`` on synthetic); every run of one call uses the same overrides.
 """
 from __future__ import annotations

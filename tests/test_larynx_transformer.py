@@ -377,7 +377,7 @@ def test_the_default_run_takes_its_length_from_the_data_and_keeps_the_best_weigh
     default = compose_config("train", ["task=larynx_transformer", "data=pairs", f"data.path={tmp_path}"]).trainer
     assert (default.max_steps, default.eval_every, default.early_stopping_patience, default.restore_best) == (
         None, 100, 6, True)
-    cfg = tiny_config(["task.epochs=1", "task.min_steps=15", "task.max_steps=15", "trainer.max_steps=null",
+    cfg = tiny_config(["task.epochs=1", "task.fewest_steps=15", "task.most_steps=15", "trainer.max_steps=null",
                        "trainer.eval_every=5", "trainer.restore_best=true"], SHORT_DATA)
     result = fit(cfg, tmp_path / "run")
     assert "larynx_transformer: 15 training steps for these data" in capsys.readouterr().out
@@ -389,12 +389,12 @@ def test_the_default_run_takes_its_length_from_the_data_and_keeps_the_best_weigh
 
 
 def test_training_length_scales_with_the_data(tmp_path):
-    task = linear_pair_task(tmp_path, ["task.epochs=100", "task.min_steps=10", "task.max_steps=1000",
+    task = linear_pair_task(tmp_path, ["task.epochs=100", "task.fewest_steps=10", "task.most_steps=1000",
                                        "task.batch_size=8"])
     frames = sum(len(s) for s in task.train)
-    assert task.max_steps() == round(100 * frames / (8 * 64))
-    capped = linear_pair_task(tmp_path, ["task.epochs=100", "task.min_steps=10", "task.max_steps=20"])
-    assert capped.max_steps() == 20
+    assert task.steps_for_data() == round(100 * frames / (8 * 64))
+    capped = linear_pair_task(tmp_path, ["task.epochs=100", "task.fewest_steps=10", "task.most_steps=20"])
+    assert capped.steps_for_data() == 20
 
 
 def test_sequences_shorter_than_a_crop_are_reported_and_left_out(tmp_path, capsys):

@@ -7,8 +7,8 @@ recordings many channels co-vary with tau by chance, and a new take moves them e
 normalised tau plus ``velocity_weight`` times the MSE of its frame differences.
 
 Length of training: with ``trainer.max_steps`` null the task chooses it from the data
-(:meth:`Task.max_steps`: ``task.epochs`` passes over the training frames, within
-``[task.min_steps, task.max_steps]``); validation (``evaluate``) returns ``val_loss``, the streamed
+(:meth:`Task.steps_for_data`: ``task.epochs`` passes over the training frames, within
+``[task.fewest_steps, task.most_steps]``); validation (``evaluate``) returns ``val_loss``, the streamed
 validation RMSE, for early stopping and best-checkpoint selection.
 
 Starting point: random weights, or with ``task.init_from`` another run's (``pretrained``: the shipped model,
@@ -250,7 +250,7 @@ class Task:
         self.crop_weights = (lengths - crop + 1).double()  # each sequence as often as it has crop positions
         self.seq_subject = torch.tensor([self.model.subject_index(s.subject) for s in self.train])
         trainer_steps = cfg.trainer.get("max_steps") if "trainer" in cfg else None
-        self.total_steps = int(trainer_steps) if trainer_steps else self.max_steps()
+        self.total_steps = int(trainer_steps) if trainer_steps else self.steps_for_data()
 
     def model_config(self) -> dict:
         return self._model_config
@@ -267,13 +267,13 @@ class Task:
         self.model.to(device)
         return self
 
-    def max_steps(self) -> int:
+    def steps_for_data(self) -> int:
         """Training steps for these data: ``task.epochs`` passes over the training frames, within
-        ``[task.min_steps, task.max_steps]`` (used when ``trainer.max_steps`` is null)."""
+        ``[task.fewest_steps, task.most_steps]`` (used when ``trainer.max_steps`` is null)."""
         s = self.settings
         frames = float(sum(len(sequence) for sequence in self.train))
         steps = s.epochs * frames / (s.batch_size * self.crop)
-        return int(min(s.max_steps, max(s.min_steps, round(steps))))
+        return int(min(s.most_steps, max(s.fewest_steps, round(steps))))
 
     # ------------------------------------------------------------------ training
     # The random stream of a batch is fixed: a batch seed gives the crops it gave in every earlier version, so
