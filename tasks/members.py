@@ -10,7 +10,8 @@ compute once per run goes in ``data.baselines`` (a dict; member processes send t
 
 Member k trains as a run of its own (:func:`member_config`: ``task.member=k``, the seed :func:`member_seed`) in
 ``<run>/members/<k>/`` (checkpoints, ``metrics.csv``, ``eval.json``; ``resume=true`` continues each, starts those
-never started, and a finished member only repeats its final evaluation; ``trainer.stop_after`` stops every member
+never started (a run whose first member never started has nothing to resume: refused), and a finished member only
+repeats its final evaluation; ``trainer.stop_after`` stops every member
 there and writes no ensemble), then the ensemble goes to ``<run>/checkpoints/best.pt`` and ``last.pt`` (the same
 file: there is nothing to resume in it) and ``<run>/eval.json``: every member's final evaluation, their mean, and
 the ensemble's own (``ensemble_<metric>``) where the task gives one.
@@ -103,6 +104,10 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     count = int(cfg.task.get("members", 1))
     if count == 1:
         return fit(cfg, run_dir)
+    first = int(cfg.task.get("member") or 0)
+    first_dir = run_dir if cfg.task.get("member") is not None else member_folders(run_dir, [0])[0]
+    if launched_ranks().main:  # the run's first member has nothing to resume: refused before the data load
+        RunFolder(first_dir, writer=False).resume_state(member_config(cfg, first))
     data = module.load_data(cfg)
     refits = getattr(module, "refits", lambda _: False)(cfg)
     if cfg.task.get("member") is not None:  # one member alone, in the run folder itself
