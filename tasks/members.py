@@ -112,7 +112,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
     refits = getattr(module, "refits", lambda _: False)(cfg)
     if cfg.task.get("member") is not None:  # one member alone, in the run folder itself
         member = int(cfg.task.member)
-        finished = run_members(member_config(cfg, member), {member: run_dir}, data, refits, Ranks())
+        finished = run_members(cfg, {member: run_dir}, data, refits, Ranks())
         return json.loads(RunFolder(run_dir, writer=False).evaluation.read_text()) if finished else {}
     ranks = launched_ranks()
     if ranks.world == 1:

@@ -254,8 +254,9 @@ def test_resuming_an_ensemble_continues_its_members_and_starts_the_ones_never_st
 
 
 def test_members_trained_in_parallel_processes_equal_the_sequential_run(tmp_path):
-    """trainer.member_workers=2: two spawned processes share the three members and their refits; every member's
-    weights, the refits', the ensemble's and eval.json's figures equal the one-process run's bit for bit."""
+    """trainer.member_workers=2 (two spawned processes share the three members and their refits) and one job per
+    member (task.member=k, then resume=true): every member's weights, the refits', the ensemble's and eval.json's
+    figures equal the one-process run's bit for bit."""
     shifted_channel_pairs(tmp_path / "pairs", 4, 100, seed=1, other_level=0.2)
     overrides = ["data=pairs", f"data.path={tmp_path / 'pairs'}", "data.val_fraction=0.3", "task.crop=24",
                  "model.window=8", "model.d_model=16", "model.n_heads=2", "model.d_ff=24",
@@ -264,11 +265,18 @@ def test_members_trained_in_parallel_processes_equal_the_sequential_run(tmp_path
                  "task.members=3"]
     sequential = train(tiny_config(overrides, data=[]), tmp_path / "one")
     parallel = train(tiny_config([*overrides, "trainer.member_workers=2"], data=[]), tmp_path / "two")
+    # one job per member (a sweep over task.member, e.g. on SLURM), then a resumed run writes the ensemble
+    for k in range(3):
+        train(tiny_config([*overrides, f"task.member={k}"], data=[]), tmp_path / "jobs" / "members" / str(k))
+    jobs = train(tiny_config([*overrides, "resume=true"], data=[]), tmp_path / "jobs")
     timing = [key for key in sequential if key.endswith("train_seconds")]
-    assert {k: v for k, v in parallel.items() if k not in timing} == {
-        k: v for k, v in sequential.items() if k not in timing}
+    for result in (parallel, jobs):
+        assert {k: v for k, v in result.items() if k not in timing} == {
+            k: v for k, v in sequential.items() if k not in timing}
     files = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").rglob("*.pt"))
     assert len(files) == 2 + 3 * 4  # the ensemble's best and last, each member's and each refit's
     for name in files:
-        one, two = (torch.load(tmp_path / run / name, weights_only=True)["model"] for run in ("one", "two"))
-        assert one.keys() == two.keys() and all(torch.equal(one[k], two[k]) for k in one), name
+        one, two, three = (torch.load(tmp_path / run / name, weights_only=True)["model"]
+                           for run in ("one", "two", "jobs"))
+        for other in (two, three):
+            assert one.keys() == other.keys() and all(torch.equal(one[k], other[k]) for k in one), name
