@@ -370,7 +370,7 @@ def test_crops_are_pairs_at_any_start_within_their_sequence(tmp_path):
 
 
 def test_the_default_run_takes_its_length_from_the_data_and_keeps_the_best_weights(tmp_path, capsys):
-    """configs/trainer/larynx_transformer.yaml: trainer.max_steps null (the task's Task.max_steps), validation every
+    """configs/trainer/larynx_transformer.yaml: trainer.max_steps null (the task's Task.steps_for_data), validation every
     100 steps, early stopping and the best weights restored."""
     from base.cli import compose_config
 
