@@ -25,8 +25,8 @@ fold's (the refit has no held-out data left to score on).
 
 Where the members train (the same weights bit for bit every way: each run is seeded and alone in its process):
 - ``trainer.member_workers=1``: one after another in this process;
-- ``trainer.member_workers=N``: N processes of this machine (spawned, each given the data once), handed the
-  members' runs and refits as they free up;
+- ``trainer.member_workers=N``: N processes of this machine (forked on Linux, else spawned and given the data
+  once), handed the members' runs and refits as they free up;
 - under ``torchrun`` with ``task.members`` > 1: the ranks split the members (rank r trains members r, r + W, ...,
   each alone, no DDP) and rank 0 writes the ensemble once every rank has finished; with one member the ranks train
   it together under DDP (``tasks.loop``);
@@ -39,6 +39,7 @@ from __future__ import annotations
 import copy
 import datetime
 import json
+import sys
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from multiprocessing import get_context
 from pathlib import Path
@@ -54,6 +55,9 @@ from tasks.distributed import Ranks, launched_ranks
 from tasks.loop import fit
 from tasks.run_folder import RunFolder
 
+# Member processes are forks of the run's where the system has them (Linux: no second import of torch, the data
+# shared as it is; the run's process has computed nothing with torch's thread pool yet), else spawned.
+START_METHOD = "fork" if sys.platform == "linux" else "spawn"
 # A rank that trains its members alone waits for the others' at the end: as long as their members take.
 MEMBER_WAIT = datetime.timedelta(days=7)
 
@@ -151,7 +155,7 @@ def run_members(cfg: DictConfig, folders: dict[int, Path], data, refits: bool, r
     the length, on ``trainer.member_workers`` processes; whether every one finished (``trainer.stop_after``)."""
     workers = min(int(cfg.trainer.member_workers), len(folders))
     if workers > 1:
-        pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=start_worker,
+        pool = ProcessPoolExecutor(workers, mp_context=get_context(START_METHOD), initializer=start_worker,
                                    initargs=(data, int(cfg.trainer.threads)))
         cfg = copy.deepcopy(cfg)
         cfg.trainer.progress = False  # several bars on one terminal
