@@ -211,6 +211,25 @@ def test_a_sweep_under_torchrun_and_untied_slurm_tasks_are_refused(monkeypatch, 
     assert distributed.launched_ranks() == distributed.Ranks(3, 4, 0)
 
 
+def test_two_ranks_split_an_ensembles_members(tmp_path):
+    """torchrun with task.members=3: rank 0 trains members 0 and 2, rank 1 member 1 (each alone, with its refit),
+    and rank 0 writes the ensemble of the one-process run, bit for bit."""
+    from test_larynx_ensemble import small_ensemble
+    from test_larynx_transformer import TINY_LARYNX, tiny_config
+
+    from tasks.members import train as train_run
+
+    overrides = small_ensemble(tmp_path / "pairs")
+    train_run(tiny_config(overrides, data=[]), tmp_path / "one")
+    result = run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+                  str(REPO / "train.py"), *TINY_LARYNX, *overrides, f"hydra.run.dir={tmp_path / 'two'}"], tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one", "pairs", "two"]  # nothing in the working folder
+    for name in ("checkpoints/best.pt", "members/1/refit/checkpoints/last.pt"):
+        one, two = (load_checkpoint(tmp_path / run / name)["model"] for run in ("one", "two"))
+        assert max_difference(one, two) == 0, name
+
+
 # --------------------------------------------------------------------------- sweeps
 
 

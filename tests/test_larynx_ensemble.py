@@ -2,6 +2,8 @@
 batched step, trained on their own seeds and validation folds, written as one checkpoint."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -253,16 +255,21 @@ def test_resuming_an_ensemble_continues_its_members_and_starts_the_ones_never_st
     assert whole.keys() == resumed.keys() and all(torch.equal(whole[k], resumed[k]) for k in whole)
 
 
+def small_ensemble(folder: Path) -> list[str]:
+    """train.py overrides (beside TINY_LARYNX) of three small members on four takes written to ``folder``,
+    refitting after 8 steps at most."""
+    shifted_channel_pairs(folder, 4, 100, seed=1, other_level=0.2)
+    return ["data=pairs", f"data.path={folder}", "data.val_fraction=0.3", "task.crop=24", "model.window=8",
+            "model.d_model=16", "model.n_heads=2", "model.d_ff=24", "model.expression_dilations=[1,2]",
+            "model.smoothing_frames=16", "task.batch_size=4", "task.ridge_window=0.1", "trainer.max_steps=8",
+            "trainer.eval_every=4", "trainer.restore_best=true", "task.members=3"]
+
+
 def test_members_trained_in_parallel_processes_equal_the_sequential_run(tmp_path):
     """trainer.member_workers=2 (two spawned processes share the three members and their refits) and one job per
     member (task.member=k, then resume=true): every member's weights, the refits', the ensemble's and eval.json's
     figures equal the one-process run's bit for bit."""
-    shifted_channel_pairs(tmp_path / "pairs", 4, 100, seed=1, other_level=0.2)
-    overrides = ["data=pairs", f"data.path={tmp_path / 'pairs'}", "data.val_fraction=0.3", "task.crop=24",
-                 "model.window=8", "model.d_model=16", "model.n_heads=2", "model.d_ff=24",
-                 "model.expression_dilations=[1,2]", "model.smoothing_frames=16", "task.batch_size=4",
-                 "task.ridge_window=0.1", "trainer.max_steps=8", "trainer.eval_every=4", "trainer.restore_best=true",
-                 "task.members=3"]
+    overrides = small_ensemble(tmp_path / "pairs")
     sequential = train(tiny_config(overrides, data=[]), tmp_path / "one")
     parallel = train(tiny_config([*overrides, "trainer.member_workers=2"], data=[]), tmp_path / "two")
     # one job per member (a sweep over task.member, e.g. on SLURM), then a resumed run writes the ensemble

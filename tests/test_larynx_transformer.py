@@ -254,13 +254,17 @@ def test_predict_tau_and_subjects():
 # --------------------------------------------------------------------------- training
 
 
+# A small model and short runs (train.py overrides).
+TINY_LARYNX = ["model.d_model=32", "model.n_heads=4", "model.d_ff=64", "model.window=32",
+               "model.expression_dilations=[1,2,4,8]", "model.smoothing_frames=64", "task.crop=96",
+               "task.batch_size=12", "task.eval_batch=16", "task.ridge_lambdas=[1,100,10000]", "trainer.eval_every=0",
+               "trainer.early_stopping_patience=null", "trainer.restore_best=false",
+               "trainer.checkpoint_every=100000", "trainer.log_every=50", "trainer.progress=false",
+               "optim.warmup_steps=30", "task.members=1"]
+
+
 def tiny_config(run_overrides=(), data=None):
-    base = ["model.d_model=32", "model.n_heads=4", "model.d_ff=64", "model.window=32",
-            "model.expression_dilations=[1,2,4,8]", "model.smoothing_frames=64", "task.crop=96", "task.batch_size=12",
-            "task.eval_batch=16", "task.ridge_lambdas=[1,100,10000]", "trainer.eval_every=0",
-            "trainer.early_stopping_patience=null", "trainer.restore_best=false",
-            "trainer.checkpoint_every=100000", "trainer.log_every=50", "trainer.progress=false",
-            "optim.warmup_steps=30", "task.members=1"]
+    base = TINY_LARYNX
     data = data if data is not None else ["data.train_subjects=12", "data.sequences_per_subject=4", "data.seconds=20",
                     "data.heldout_subjects=4", "data.heldout_sequences_per_subject=2"]
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base=None):
@@ -370,8 +374,8 @@ def test_crops_are_pairs_at_any_start_within_their_sequence(tmp_path):
 
 
 def test_the_default_run_takes_its_length_from_the_data_and_keeps_the_best_weights(tmp_path, capsys):
-    """configs/trainer/larynx_transformer.yaml: trainer.max_steps null (the task's Task.steps_for_data), validation every
-    100 steps, early stopping and the best weights restored."""
+    """configs/trainer/larynx_transformer.yaml: trainer.max_steps null (the task's Task.steps_for_data), validation
+    every 100 steps, early stopping and the best weights restored."""
     from base.cli import compose_config
 
     default = compose_config("train", ["task=larynx_transformer", "data=pairs", f"data.path={tmp_path}"]).trainer
