@@ -162,20 +162,3 @@ def as_list(value) -> list:
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
         return [value]
     return list(value)
-
-
-def config_dataclass(cls, section, where: str, other_keys=()):
-    """Transitional (being replaced by :func:`to_dataclass`): ``cls`` from a section minus ``other_keys``."""
-    values = OmegaConf.to_container(section, resolve=True) if isinstance(section, DictConfig) else dict(section)
-    known = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - set(known) - set(other_keys))
-    if unknown:
-        raise InputError(f"{where}: unknown keys {unknown}; known: {sorted(set(known) | set(other_keys))}")
-    values = {k: v for k, v in values.items() if k in known}
-    for name, value in values.items():
-        if isinstance(value, list) and isinstance(known[name].default, tuple):
-            values[name] = tuple(value)
-    try:
-        return cls(**values)
-    except ValueError as e:
-        raise InputError(f"{where}: {e}") from None

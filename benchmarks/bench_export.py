@@ -42,7 +42,7 @@ from base.files import atomic_path  # noqa: E402
 from data.params import AnimationParams, rig_checksum  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
 from scene.fbx import BlenderMissing, export_fbx  # noqa: E402
-from scene.gltf import export_glb, rig_vertices  # noqa: E402
+from scene.gltf import build_glb, export_glb, rig_vertices  # noqa: E402
 from scene.preview import Panel, preview_image, write_preview  # noqa: E402
 from scene.usd import baked_points, export_usd, time_codes, validation_errors  # noqa: E402
 from scene.viewer import build_viewer  # noqa: E402
@@ -103,13 +103,13 @@ def main() -> None:
         report = export_glb(params, rig, Path(folder) / "clip.glb", check=False)
         export_seconds = time.perf_counter() - started
         started = time.perf_counter()
-        checked = export_glb(params, rig, None, check=True)
+        checked = build_glb(params, rig, check=True).report
         check_seconds = time.perf_counter() - started - checked.seconds
     print(f"GLB export: {export_seconds:.2f} s for {len(params)} frames ({report.bytes / 1e6:.1f} MB; "
           f"{report.vertices} vertices, {report.expression_targets} + {report.larynx_targets} larynx + "
           f"{report.corrective_targets} corrective morph targets, larynx error {report.larynx_error_cm:.4f} cm); "
           f"checking every frame against the rig: {check_seconds:.2f} s more, max error {checked.max_error_cm:.4f} cm")
-    checked4 = export_glb(params, rig, None, max_influences=4, check=True)
+    checked4 = build_glb(params, rig, max_influences=4, check=True).report
     print(f"  max_influences=4: {checked4.truncated} vertices lose weight, max error {checked4.max_error_cm:.4f} cm")
 
     second = HeadNeckModel.from_config(args.second_rig) if args.second_rig else rig

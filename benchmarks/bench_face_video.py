@@ -2,7 +2,7 @@
 
     python benchmarks/bench_face_video.py [--seconds 60] [--fps 30] [--size 512] [--skip-speed] [--skip-smoothing]
 
-Needs ../shared/assets/ICT-FaceKit (the rendered head, ``motion.face.synthetic``) and ``pip install ".[video]"``.
+Needs ../shared/assets/ICT-FaceKit (the rendered head, ``tests/face_head.py``) and ``pip install ".[video]"``.
 
 Speed: a ``--seconds`` video at ``--fps``, ``--size`` x ``--size`` (mp4v), of the rendered head turning,
 nodding, opening the jaw, blinking and puckering (90 distinct frames cycled, fresh sensor noise on each
@@ -53,9 +53,9 @@ def best_shift(reference: np.ndarray, delayed: np.ndarray) -> float:
 def speed(args, work: Path) -> None:
     from base.cli import compose_config, to_dataclass
     from motion.face.frames import open_video
-    from motion.face.synthetic import FaceHead, known_motion, render_known_motion, write_video
     from motion.pipeline.models import load_models
     from motion.pipeline.take import run_take
+    from tests.face_head import FaceHead, known_motion, render_known_motion, write_video
 
     head = FaceHead(ICT_DIR, ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthPucker"), size=args.size)
     started = time.perf_counter()
@@ -92,8 +92,8 @@ def speed(args, work: Path) -> None:
 
 def smoothing(args, work: Path) -> None:
     from data.expressions import EXPRESSION_NAMES
-    from motion.face.synthetic import FaceHead, known_motion, render_known_motion, write_video
     from motion.face.video import read_face_video
+    from tests.face_head import FaceHead, known_motion, render_known_motion, write_video
 
     head = FaceHead(ICT_DIR, ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthPucker"), size=256)
     rng = np.random.default_rng(1)

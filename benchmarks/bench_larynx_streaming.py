@@ -6,10 +6,12 @@
 Prints:
 - frames/s of the whole-sequence API (``generate``) and of the live per-frame API (``step``), B = 1;
 - the per-frame cost (median over 500 frames) at frame 100, 10,000 and ``--far``, and the bytes of
-  tensors the stream carries there (``LarynxStream.state_bytes``; constant: bounded memory);
+  tensors the stream carries there (``state_bytes``; constant: bounded memory); the cost at ``--far`` over
+  the cost at frame 100 must stay under ``FLAT_RATIO`` (bounded cost; the tests check the bounded memory);
 - FaceFormer-style decoding, which reruns the model on the whole prefix at every frame
   (``generate_uncached``): its per-frame cost at prefix 100, 600 (FaceFormer's limit) and 2,000
   frames, the ratio to streaming, and the total time of a 600-frame clip both ways.
+(``state_bytes`` and ``generate_uncached``: ``tests/larynx_reference.py``, shared with the tests.)
 
 Without ``--checkpoint`` the model has the default size (``LarynxTransformerConfig``, the
 ``model`` group's schema) and random weights, an ensemble of ``--members`` of them (``task.members``' default);
@@ -38,6 +40,9 @@ from models.larynx import (  # noqa: E402
     LarynxTransformer,
     LarynxTransformerConfig,
 )
+from tests.larynx_reference import generate_uncached, state_bytes  # noqa: E402
+
+FLAT_RATIO = 1.5  # bound on the per-frame cost far into a take over the cost at frame 100 (bounded cost)
 
 
 def default_model(members: int):
@@ -68,7 +73,7 @@ def streaming_costs(model, psi: torch.Tensor, positions: list[int], span: int = 
             stream.step(frame)
             wall[p].append(time.perf_counter() - start)
             cpu[p].append(time.process_time() - start_cpu)
-    return {p: (float(np.median(wall[p])), float(np.median(cpu[p])), streams[p].state_bytes()) for p in positions}
+    return {p: (float(np.median(wall[p])), float(np.median(cpu[p])), state_bytes(streams[p])) for p in positions}
 
 
 def best_over_threads(run, threads: int) -> tuple[float, int]:
@@ -130,6 +135,8 @@ def main() -> None:
               f" stream holds {held} bytes of tensors")
     flat, flat_cpu = costs[args.far][0] / costs[100][0], costs[args.far][1] / costs[100][1]
     print(f"  cost at frame {args.far} / frame 100 = {flat:.2f} (wall clock), {flat_cpu:.2f} (CPU)")
+    print(f"  target: the cost does not grow with the position, ratio < {FLAT_RATIO} (wall clock) -> "
+          f"{'met' if flat < FLAT_RATIO else 'NOT met'}")
 
     print(f"\nFaceFormer-style full-prefix recomputation (per frame, best of 1 and {args.threads} threads):")
     for prefix in (100, 600, 2000):
@@ -140,7 +147,7 @@ def main() -> None:
         print(f"\nload average now {os.getloadavg()[0]:.2f}")
         return
     clip = psi[None, :600]
-    uncached, threads = best_over_threads(lambda: timed(lambda: model.generate_uncached(clip)), args.threads)
+    uncached, threads = best_over_threads(lambda: timed(lambda: generate_uncached(model, clip)), args.threads)
     cached = min(timed(lambda: model.generate(clip)) for _ in range(3))
     print(f"  600-frame clip: recomputation {uncached:.2f} s ({threads} thread), streaming {cached:.3f} s, "
           f"ratio {uncached / cached:.0f} x")

@@ -21,7 +21,7 @@ Data (``data.synthetic_tau``):
 Methods, each on the same clips:
 
 - ours: ``motion.swallow.build_template`` (detection, landmark selection, registration, mean);
-- five-landmark: ``motion.swallow.baseline``, a simple registration: rest from the first and last
+- five-landmark: ``benchmarks/swallow_baseline.py``, a simple registration: rest from the first and last
   0.3 s (linear), 10% and 50% crossings either side of the maximum and the maximum, piecewise-linear
   warps to the mean landmarks, mean (the baseline issue 13 quotes for the recorded check);
 - naive: the clips averaged on time since their start (rest removed with the true offset);
@@ -43,10 +43,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout, for `python benchmarks/...`
 
+from swallow_baseline import five_landmark_mean, five_landmarks  # noqa: E402  (beside this script)
+
 from data.synthetic_tau import SWALLOW_SHAPES, physiological_swallow_clips, swallow_profile, warped_swallow_clips  # noqa: E402
 from data.tau_track import TauTrack  # noqa: E402
 from motion.swallow import build_template, template_error  # noqa: E402
-from motion.swallow.baseline import five_landmark_mean, five_landmarks  # noqa: E402
 
 SCENARIOS = {
     "family": dict(noise=0.0015, drift=0.004, wander=0.0008, warp_strength=0.25),

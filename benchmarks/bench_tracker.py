@@ -50,6 +50,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from timing import frames_per_second  # noqa: E402
+from tracker_baseline import raw_correlation_argmax  # noqa: E402
 
 from base.errors import InputError  # noqa: E402
 from data.normals import encode_normals, stored_to_unit  # noqa: E402
@@ -61,7 +62,6 @@ from motion.track import (  # noqa: E402
     calibrate_window,
     check_normal_map,
     decode_frame,
-    raw_correlation_argmax,
     rig_kernel,
     track_sequence,
 )

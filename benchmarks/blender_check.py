@@ -22,9 +22,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data.params import load_params  # noqa: E402
 from scene.characters import person_rig, resolve_rig  # noqa: E402
-from scene.fbx import blender_vertices  # noqa: E402
 from scene.gltf import METRES_PER_CM, rig_vertices  # noqa: E402
 from scene.gltf.mesh import split_uv_seams  # noqa: E402
+from tests.blender_sampling import blender_vertices  # noqa: E402
 
 
 def choose_frames(spec: str | None, count: int) -> np.ndarray:

@@ -4,6 +4,7 @@
         [--person]   # another person: data.fit_captures.reshaped_person (fit it with fit_shape=true)
     python -m motion.fit input=capture/ kind=scans units=mm [rig=hack_rig.npz] out_dir=fit/
     python benchmarks/fit_app_check.py score --out capture/ --fit fit/
+    python benchmarks/fit_app_check.py roundtrip --out capture/ --fit fit/   # fit with export=[glb]; needs Blender
 
 The generator is not the benchmark's (``data.fit_captures`` / ``bench_fit.py``: the prior's motions, a small
 sway, scans sampled on triangles from a fixed view): every neck joint nods, turns and tilts by sines (up to
@@ -12,7 +13,9 @@ with 1 mm of Gaussian noise per axis.  Scans (``--kind scans``) are the posed ve
 of the head (half of them), with 1 mm noise and 3 % stray points in a 30 cm box about the head.  The truth
 goes beside the capture (``<out>_truth.npz``).  ``score`` prints the joints' angle error (c6c7..oc1, mean
 over frames), the world head orientation's error, tau's RMSE, the vertex RMS of the fitted mesh (placed in
-the capture, the fitted shape included) against the clean capture, and what the fit reports.
+the capture, the fitted shape included) against the clean capture, and what the fit reports.  ``roundtrip``
+(issue 55's bar): the fit's ``anim.glb`` re-imported by Blender's glTF importer and posed at every frame, its
+largest distance (cm) from the fitted mesh (the rig posed on the fitted shape) in the rig's frame.
 """
 from __future__ import annotations
 
@@ -31,6 +34,8 @@ from data.mesh_io import write_ply  # noqa: E402
 from data.params import load_params  # noqa: E402
 from models.rig import HeadNeckModel  # noqa: E402
 from scene.characters import person_rig, resolve_rig  # noqa: E402
+from scene.gltf import METRES_PER_CM, split_uv_seams  # noqa: E402
+from tests.blender_sampling import blender_vertices  # noqa: E402
 
 
 def capture_sequence(rig: HeadNeckModel, frames: int, noise_mm: float = 1.0, seed: int = 0) -> dict:
@@ -96,10 +101,7 @@ def score(args) -> None:
     head = params.root_rotation.astype(np.float64) @ params.head_rotation
     cos = (np.trace(np.swapaxes(head, 1, 2) @ truth["head_world"], axis1=1, axis2=2) - 1) / 2
     report = json.loads((Path(args.fit) / "report.json").read_text())
-    model = person_rig(resolve_rig(params, Path(args.fit) / "params.npz", args.rig), params)
-    with torch.no_grad():
-        posed = model(torch.as_tensor(params.theta), torch.as_tensor(params.psi), torch.as_tensor(params.tau),
-                      torch.as_tensor(params.eta)).double().numpy()
+    posed = fitted_mesh(params, Path(args.fit), args.rig)
     placed = np.einsum("tab,tvb->tva", params.root_rotation.astype(np.float64), posed)
     placed = placed + params.root_translation[:, None]
     vertex_rms = np.sqrt(np.mean(np.sum((10 * placed - truth["clean_mm"]) ** 2, axis=-1))) \
@@ -113,9 +115,32 @@ def score(args) -> None:
           f"{report['frames_per_s']} frames/s; uncertainty {report['joint_uncertainty_deg']}")
 
 
+def fitted_mesh(params, fit: Path, rig: str | None) -> np.ndarray:
+    """The fit's mesh [T,V,3] cm in the rig's frame: the rig on the fitted shape, posed by the fit."""
+    model = person_rig(resolve_rig(params, fit / "params.npz", rig), params)
+    with torch.no_grad():
+        return model(torch.as_tensor(params.theta), torch.as_tensor(params.psi), torch.as_tensor(params.tau),
+                     torch.as_tensor(params.eta)).double().numpy()
+
+
+def roundtrip(args) -> None:
+    fit = Path(args.fit)
+    params = load_params(fit / "params.npz")
+    posed = fitted_mesh(params, fit, args.rig)
+    order = split_uv_seams(resolve_rig(params, fit / "params.npz", args.rig)).rig_index
+    frames = np.arange(len(params))
+    blender = blender_vertices(fit / "anim.glb", params.fps, frames)["vertices"]   # metres, Blender's z up
+    in_rig_frame = np.stack([blender[..., 0], blender[..., 2], -blender[..., 1]], axis=-1) / METRES_PER_CM
+    error = np.linalg.norm(in_rig_frame - posed[:, order], axis=-1)
+    offset = 0.0 if params.shape_offset is None else float(np.linalg.norm(params.shape_offset, axis=-1).max())
+    print(f"round trip fit -> params.npz -> anim.glb -> Blender, {len(frames)} frames, {posed.shape[1]} vertices: "
+          f"max {error.max():.5f} cm (frame {int(error.max(1).argmax())}), mean {error.mean():.6f} cm; "
+          f"shape offset up to {offset:.3f} cm")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("mode", choices=("write", "score"))
+    parser.add_argument("mode", choices=("write", "score", "roundtrip"))
     parser.add_argument("--out", required=True, help="the capture folder (its truth beside it)")
     parser.add_argument("--fit", help="score: the fit's out_dir")
     parser.add_argument("--kind", choices=("meshes", "scans"), default="meshes")
@@ -124,7 +149,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--person", action="store_true", help="write: another person's shape")
     args = parser.parse_args()
-    write(args) if args.mode == "write" else score(args)
+    {"write": write, "score": score, "roundtrip": roundtrip}[args.mode](args)
 
 
 if __name__ == "__main__":

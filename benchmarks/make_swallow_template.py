@@ -19,8 +19,9 @@ sys.path.insert(0, str(REPO))
 
 from data.synthetic_tau import physiological_swallow_clips  # noqa: E402
 from data.tau_track import TauTrack, write_tau_track  # noqa: E402
-from models.pretrained import PRETRAINED, ship_file  # noqa: E402
+from models.pretrained import PRETRAINED  # noqa: E402
 from motion.swallow import read_template  # noqa: E402
+from tools.ship_model import ship_file  # noqa: E402
 
 
 def main() -> None:

@@ -24,7 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from models.checkpoint import load_checkpoint  # noqa: E402
-from models.pretrained import PRETRAINED, read_manifest, ship  # noqa: E402
+from models.pretrained import PRETRAINED, read_manifest  # noqa: E402
+from tools.ship_model import ship  # noqa: E402
 
 
 def main() -> None:

@@ -51,9 +51,9 @@ clamped into the limits after each step.  From the MLP's output (residual
 < 1 degree) one step leaves ~1e-4 degrees; from the ROM split (~10 degrees)
 two steps; the loop stops once every residual is below ``tolerance_deg``.  A
 target outside the chain's range keeps the residual the limits impose
-(:func:`head_error_deg` reports it).  The chain's head orientation is computed
-in quaternions (:func:`head_chain`, :func:`chain_head_rotation`), the same
-quantity as ``HeadNeckModel.head_rotation`` without the translations.
+(:func:`head_error_deg` reports it).  The chain's head orientation for training's losses is the
+rig's forward kinematics on rotations alone (:func:`chain_head_rotation`), ``HeadNeckModel.head_rotation``
+without the translations.
 """
 from __future__ import annotations
 
@@ -69,19 +69,17 @@ from torch import nn
 from base.errors import InputError
 from base.rotations import (
     axis_angle_to_euler_np,
-    axis_angle_to_quaternion,
+    axis_angle_to_matrix,
     euler_to_axis_angle_np,
     euler_to_matrix_np,
     matrix_to_axis_angle,
     matrix_to_axis_angle_np,
-    matrix_to_quaternion,
     matrix_to_rot6d,
-    quaternion_multiply,
-    quaternion_to_matrix,
     relative_angle,
 )
 from data.cervical_prior import AXIAL, EXT, FLEX, FULL_SHARES, HEAD_RANGE_DEG, LAT, START_SHARES
 from data.joint_limits import JOINT_LEVELS, euler_limits, range_of_motion_shares
+from models.rig import forward_kinematics
 
 NUM_JOINTS = len(JOINT_LEVELS)
 SPLITS = ("uniform", "rom", "invivo")
@@ -237,39 +235,15 @@ def chain_to(parents: Sequence[int], joint: int) -> list[int]:
     return chain[::-1]
 
 
-def product_matrices(rest: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Constant linear maps of the chain, [K,4,4] each: ``q -> C q C^*`` and ``q -> q C`` for quaternions C [K,4]."""
-    basis = torch.eye(4, dtype=rest.dtype, device=rest.device)[:, None]               # [4(i),1,4]
-    conjugate = rest * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=rest.dtype, device=rest.device)
-    sandwich = quaternion_multiply(quaternion_multiply(rest, basis), conjugate)        # [4(i),K,4]
-    right = quaternion_multiply(basis, rest)                                          # [4(i),K,4]
-    return sandwich.permute(1, 2, 0), right.permute(1, 2, 0)                          # [K,4(out),4(i)]
-
-
-def head_chain(rotations: torch.Tensor, rest: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rotation-only forward kinematics, in quaternions, of the chain ending at the head (oc1).
-
-    rotations [B,K,4] (R_j of the head's ancestors, root first), rest [K,4] (their C_j) ->
-    (head orientation [B,4], frames [B,K,4]).  With Q_j = Q_parent(j) C_j R_j C_j^T the head
-    orientation is Q_oc1 (the definition of ``HeadNeckModel.head_rotation``: translations do not
-    affect it) and frame M_j = Q_parent(j) C_j is joint j's posed (anatomical) world frame before its
-    own rotation.
-    """
-    sandwich, right = product_matrices(rest)
-    world = torch.einsum("kij,bkj->bki", sandwich, rotations)                         # C_j R_j C_j^T
-    prefix = [torch.zeros_like(world[:, 0])]
-    prefix[0][:, 0] = 1.0
-    for k in range(world.shape[1]):
-        prefix.append(quaternion_multiply(prefix[-1], world[:, k]))
-    return prefix[-1], torch.einsum("kij,bkj->bki", right, torch.stack(prefix[:-1], dim=1))
-
-
 def chain_head_rotation(theta: torch.Tensor, rig) -> torch.Tensor:
     """Head orientation [B,3,3] of anatomical theta [B,J,3]: ``rig.head_rotation(rig.from_anatomical(theta))``
-    by :func:`head_chain` (rotations only, ~5x cheaper; differentiable)."""
-    chain = chain_to(rig.parents, len(rig.parents) - 1)
-    rest = matrix_to_quaternion(rig.anatomical_rest_rotations[chain].to(theta))
-    return quaternion_to_matrix(head_chain(axis_angle_to_quaternion(theta[:, chain]), rest)[0])
+    by the rig's forward kinematics on rotations alone (``models.rig.forward_kinematics``), in the anatomical
+    frames.  With the rest rotations ``C_parent^T C_j`` between them the world frame of joint j is ``Q_j C_j``
+    (``Q_j = Q_parent C_j R_j C_j^T``), so the head is ``G_oc1 C_oc1^T``.  Reads the rig's ``parents`` and
+    ``anatomical_rest_rotations`` only; differentiable."""
+    rest = rig.anatomical_rest_rotations.to(theta)
+    between = torch.stack([rest[j] if p < 0 else rest[p].T @ rest[j] for j, p in enumerate(rig.parents)])
+    return forward_kinematics(axis_angle_to_matrix(theta), between, rig.parents)[:, -1] @ rest[-1].T
 
 
 def euler_rate_axes(euler: np.ndarray) -> np.ndarray:

@@ -50,6 +50,7 @@ def max_difference(a: dict, b: dict) -> float:
 # --------------------------------------------------------------------------- two ranks = one process
 
 
+@pytest.mark.slow
 def test_two_ranks_train_the_one_process_weights_and_resume_after_a_stop(tmp_path):
     """Two gloo ranks, each on half of the global batch of 64, stopped after step 3 and resumed, end with the
     weights of one uninterrupted process (float tolerance: the gradient is summed in two halves), and log the

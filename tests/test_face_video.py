@@ -1,6 +1,6 @@
 """The face stage (motion.face) on faces with known answers, and infer.py on bad videos.
 
-Known answers: the ICT-FaceKit head from ../shared/assets rendered (motion.face.synthetic) with known
+Known answers: the ICT-FaceKit head from ../shared/assets rendered (tests/face_head.py) with known
 jawOpen, eyeBlink and mouthPucker weights and known head yaw and pitch; the same head's frontal image
 rotated in the image plane by known angles (roll).  Bars from issue 43: correlation >= 0.8 with the truth
 for the three expressions, yaw and pitch within 5 degrees after removing a constant offset, roll within
@@ -45,7 +45,7 @@ def yaw_pitch_roll(rotations: np.ndarray) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def head():
-    from motion.face.synthetic import FaceHead
+    from tests.face_head import FaceHead
 
     return FaceHead(ICT_DIR, ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthPucker"), size=SIZE)
 
@@ -53,8 +53,8 @@ def head():
 @pytest.fixture(scope="module")
 def known_take(head, tmp_path_factory):
     """(truth, frames, track): the rendered sequence with sensor noise, written as an .mp4 and read back."""
-    from motion.face.synthetic import known_motion, render_known_motion, write_video
     from motion.face.video import read_face_video
+    from tests.face_head import known_motion, render_known_motion, write_video
 
     truth = known_motion(FRAMES, FPS)
     frames = list(render_known_motion(head, truth, noise=2.0))
@@ -96,8 +96,8 @@ def test_head_yaw_and_pitch_within_5_degrees(known_take):
 def test_roll_of_a_face_rotated_in_the_image_plane(head, tmp_path):
     """A photograph of the head (frontal render) rotated in the image plane, each rotation its own photo
     (a one-frame video): the recovered roll follows the rotation."""
-    from motion.face.synthetic import write_video
     from motion.face.video import read_face_video
+    from tests.face_head import write_video
 
     frontal = head.render({})
     angles = np.array([-24.0, -16.0, -8.0, 0.0, 8.0, 16.0, 24.0])   # counter-clockwise in the image, degrees
@@ -118,8 +118,8 @@ def test_roll_of_a_face_rotated_in_the_image_plane(head, tmp_path):
 @requires_mediapipe
 @requires_ict
 def test_mirrored_footage_with_mirror_matches_the_original(known_take, tmp_path):
-    from motion.face.synthetic import write_video
     from motion.face.video import read_face_video
+    from tests.face_head import write_video
 
     truth, frames, track = known_take
     flipped = [np.ascontiguousarray(f[:, ::-1]) for f in frames[::3]]
@@ -213,7 +213,7 @@ def test_installed_model_is_the_checked_file():
 
 def bad_videos(tmp: Path) -> dict[str, tuple[Path, str]]:
     """name -> (file, regex its one-line error must match)."""
-    from motion.face.synthetic import write_video
+    from tests.face_head import write_video
 
     (tmp / "notes.mp4").write_text("not a video at all\n" * 50)
     grey = [np.full((96, 96, 3), 128, np.uint8)] * 12
@@ -257,7 +257,7 @@ def test_video_without_a_face_exits_2_with_one_line(tmp_path):
 @requires_ict
 def test_infer_on_a_video_writes_params_and_face_frames(known_take, tmp_path):
     from infer import run
-    from motion.face.synthetic import write_video
+    from tests.face_head import write_video
 
     _, frames, _ = known_take
     blank = np.full_like(frames[0], frames[0][0, 0])
@@ -286,8 +286,8 @@ def test_head_ypr_inverts_ypr_to_matrix():
 def test_live_video_equals_infer_on_the_same_video(known_take, tmp_path):
     """python -m motion.live video=clip.mp4 streams what infer.py computes offline from the same file."""
     from infer import run as infer
-    from motion.face.synthetic import write_video
     from motion.live.cli import run as live
+    from tests.face_head import write_video
 
     _, frames, _ = known_take
     video = write_video(tmp_path / "clip.mp4", frames[:30], FPS)

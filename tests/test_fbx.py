@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 from data.params import save_params
-from scene.fbx import blender_vertices, export_fbx
+from scene.fbx import export_fbx
 from scene.gltf import METRES_PER_CM, export_glb, rig_vertices
 from scene.gltf.mesh import split_uv_seams
+from tests.blender_sampling import blender_vertices
 from tests.test_gltf import clip
 
 REPO = Path(__file__).resolve().parents[1]

@@ -277,3 +277,38 @@ def test_character_giraffe_gets_the_motion_at_its_base(tmp_path, builtin_rig):
     ratio = (giraffe_flexion[frame] / human_flexion[frame]).numpy()
     np.testing.assert_allclose(ratio[0], 3.0, rtol=0.02)
     np.testing.assert_allclose(ratio[1:], 0.86, rtol=0.02)
+
+
+def test_one_glb_per_take_serves_the_page_and_blender(tmp_path, builtin_rig, monkeypatch):
+    """export=[html,fbx] without glb: the GLB is built once, and the page embeds the very bytes Blender
+    converts (Blender stubbed: the test is about what it is handed); the stages are timed by name."""
+    import base64
+    import re
+
+    import scene.fbx.export as fbx_export
+    import scene.gltf.document as document
+    from motion.pipeline.config import InferConfig
+    from motion.pipeline.models import Models
+    from motion.pipeline.outputs import write_outputs
+    from tests.test_gltf import clip
+
+    builds, handed = [], []
+    real_export_data = document.export_data
+    monkeypatch.setattr(document, "export_data", lambda *a, **k: builds.append(1) or real_export_data(*a, **k))
+    monkeypatch.setattr(fbx_export, "blender_executable", lambda *a, **k: "blender")
+
+    def fake_blender(command, glb, fbx, *rest, **kwargs):
+        handed.append(Path(glb).read_bytes())
+        Path(fbx).write_bytes(b"fbx")
+        return ""
+
+    monkeypatch.setattr(fbx_export, "run_blender", fake_blender)
+    params = clip(builtin_rig, frames=8)
+    params.producers = {"source": "take.csv"}
+    seconds = write_outputs(InferConfig(plot=False, export=["html", "fbx"]),
+                            Models(rig=builtin_rig, rig_name="builtin"), params, tmp_path)
+    assert len(builds) == 1 and len(handed) == 1 and handed[0][:4] == b"glTF"
+    page = (tmp_path / "viewer.html").read_text()
+    assert any(base64.b64decode(chunk) == handed[0] for chunk in re.findall(r"[A-Za-z0-9+/=]{10000,}", page))
+    assert list(seconds) == ["write", "glb", "html", "fbx"] and all(v >= 0 for v in seconds.values())
+    assert not (tmp_path / "anim.glb").exists() and (tmp_path / "anim.fbx").read_bytes() == b"fbx"

@@ -1,9 +1,12 @@
 """The shape of the code: modules of one job and bounded size, hydra schemas registered once, outside the models.
 
-The package layers themselves are checked by import-linter (``lint-imports``, contract in pyproject.toml).
+The package layers themselves are checked by import-linter (``lint-imports``, contract in pyproject.toml); import
+cycles inside the packages and imports deferred into functions here.
 """
 import ast
 from pathlib import Path
+
+from tools.import_cycles import cycles, project_graph
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("base", "data", "models", "scene", "tasks", "motion")
@@ -11,8 +14,9 @@ MAX_LINES = 500  # a module over this is usually several jobs
 
 
 def modules() -> list[Path]:
+    """The product's modules, the entry points and the release tooling (``tools/``)."""
     found = [p for package in PACKAGES for p in sorted((REPO / package).rglob("*.py"))]
-    return found + [REPO / "train.py", REPO / "infer.py"]
+    return found + [REPO / "train.py", REPO / "infer.py", *sorted((REPO / "tools").glob("*.py"))]
 
 
 def test_every_module_is_short_and_says_its_job():
@@ -56,3 +60,23 @@ def test_every_config_names_a_registered_schema():
         schemas = [w.strip(" -,[]") for w in text.split() if w.strip(" -,[]").endswith("_schema")]
         for schema in schemas:
             assert schema in names, f"{yaml.relative_to(REPO)} names {schema}, which nothing registers"
+
+
+def test_no_import_cycles_inside_the_packages():
+    graph = project_graph()
+    assert len(graph.modules) > 150
+    assert not cycles(graph), f"import cycles: {cycles(graph)}"
+
+
+def test_project_imports_sit_at_the_top_of_their_module():
+    """No import of a project module inside a function, class or conditional block (one place to read what a
+    module depends on; a cycle cannot hide behind a deferred import)."""
+    deferred = []
+    for path in modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Import, ast.ImportFrom)) and node.col_offset > 0:
+                names = [node.module or ""] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]
+                relative = isinstance(node, ast.ImportFrom) and node.level > 0
+                if relative or any(n.split(".")[0] in PACKAGES for n in names):
+                    deferred.append(f"{path.relative_to(REPO)}:{node.lineno}")
+    assert not deferred, f"project imports deferred into a block: {deferred}"

@@ -6,7 +6,7 @@ stand-in for recorded swallows, ``physiological_swallow_clips``, built on anothe
 truth is the swallow itself: copies' warps and scales are not centred).  Template error as issue 13
 defines it (``template_error``): RMS after the best shift (within 1 s) and time scale (0.8-1.25),
 over the true swallow's duration, / its peak height.  The baselines: the naive unaligned mean, and
-the simple five-landmark registration (``motion.swallow.baseline``: 10% and 50% crossings and the
+the simple five-landmark registration (``benchmarks/swallow_baseline.py``: 10% and 50% crossings and the
 peak, none of detection's code).
 """
 from __future__ import annotations
@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from base.errors import InputError
+from benchmarks.swallow_baseline import five_landmark_mean
 from data.synthetic_tau import (
     SWALLOW_AMPLITUDE,
     SWALLOW_DURATION,
@@ -33,7 +34,6 @@ from motion.swallow import (
     select_landmarks,
     template_error,
 )
-from motion.swallow.baseline import five_landmark_mean
 
 
 def tracks_of(clips, prefix="clip"):

@@ -26,6 +26,7 @@ from base.errors import InputError
 from base.files import save_npy
 from base.signal import parabolic_peak
 from base.tables import CsvTable
+from benchmarks.tracker_baseline import raw_correlation_argmax
 from data.normals import write_normal_image
 from data.procedural_rig import Y_BOTTOM, Y_TOP
 from motion.track import (
@@ -40,7 +41,6 @@ from motion.track import (
     calibrate_window,
     kernel_from_file,
     kernel_from_frame,
-    raw_correlation_argmax,
     rescale_kernel,
     rig_kernel,
     rig_px_per_tau,

@@ -16,45 +16,27 @@ Modules:
 - ``drives``: the smooth drives (nods, turns, tilts, combinations);
 - ``real``: :func:`load_theta_sequences`, real HACK-layout theta arrays.
 """
-from data.cervical_prior.drives import enveloped_oscillation, held_transitions, minimum_jerk, motion_drives, saturate
 from data.cervical_prior.generator import (
-    STYLES,
-    Persons,
     PriorConfig,
-    ThetaSequences,
-    cumulative_share,
     head_rotations,
     sample_persons,
     sample_sequences,
     segmental_euler,
 )
-from data.cervical_prior.hack import C1C2_AXIAL_SHARE, HACK_SHARES
 from data.cervical_prior.invivo import (
     AXIAL,
     C1C2,
-    COUPLING,
-    DIRECTIONS,
     EXT,
     FLEX,
     FULL_SHARES,
     HEAD_RANGE_DEG,
     LAT,
     MOTION_KINDS,
-    NUM_JOINTS,
     OC1,
     START_SHARES,
 )
-from data.cervical_prior.real import (
-    MAX_JOINT_ANGLE,
-    ThetaSequence,
-    load_theta_sequence,
-    load_theta_sequences,
-    theta_sequence_layout,
-)
+from data.cervical_prior.real import load_theta_sequences
 
-__all__ = ["AXIAL", "C1C2", "C1C2_AXIAL_SHARE", "COUPLING", "DIRECTIONS", "EXT", "FLEX", "FULL_SHARES",
-           "HACK_SHARES", "HEAD_RANGE_DEG", "LAT", "MAX_JOINT_ANGLE", "MOTION_KINDS", "NUM_JOINTS", "OC1",
-           "START_SHARES", "STYLES", "Persons", "PriorConfig", "ThetaSequence", "ThetaSequences",
-           "cumulative_share", "enveloped_oscillation", "head_rotations", "held_transitions",
-           "load_theta_sequence", "load_theta_sequences", "minimum_jerk", "motion_drives", "sample_persons",
-           "sample_sequences", "saturate", "segmental_euler", "theta_sequence_layout"]
+__all__ = ["AXIAL", "C1C2", "EXT", "FLEX", "FULL_SHARES", "HEAD_RANGE_DEG", "LAT", "MOTION_KINDS", "OC1",
+           "START_SHARES", "PriorConfig", "head_rotations", "load_theta_sequences", "sample_persons",
+           "sample_sequences", "segmental_euler"]

@@ -9,8 +9,8 @@ relative offsets and every attention looks at a fixed window of past frames, so
 - the whole-sequence ``forward`` runs banded attention chunk by chunk (memory O(T * window));
 - :class:`LarynxStream` decodes frame by frame with a key/value cache of ``window`` frames:
   each frame costs the same at frame 100 as at frame 100,000 and memory is bounded;
-- ``generate_uncached`` is FaceFormer's decoding (recompute the whole prefix at every frame),
-  kept as the reference the cache must match.
+- FaceFormer's decoding (recompute the whole prefix at every frame) is the reference the cache must match
+  (``tests/larynx_reference.py``).
 
 Paired captures come in minutes, not hours, and the defaults (:class:`LarynxTransformerConfig`) are
 chosen for that regime on real expressions (``benchmarks/bench_larynx_real.py``; figures in
@@ -47,29 +47,12 @@ Conventions (shapes carry a batch B and frames T):
 - subject [B] long: index into the style table, 0 = unknown subject (average style); names are
   ``model.subjects`` (index i+1 is ``subjects[i]``).
 """
-from .attention import (
-    CrossAttention,
-    SelfAttention,
-    WindowCache,
-    alibi_slopes,
-    attend_one,
-    banded_attention,
-    relative_bias,
-    step_bias,
-)
-from .block import Block, BlockFrameWeights, BlockState, block_frame, cross_frame
-from .config import DATA_KEYS, SIZES, LarynxDataFields, LarynxTransformerConfig
-from .encoder import CausalConv, EncoderFrameWeights, EncoderState, ExpressionEncoder, Smoothing, encoder_frame
-from .ensemble import LarynxEnsemble, build_model, ensemble_of, with_subjects
-from .model import STYLE_TABLES, LarynxTransformer, build_member, predict_tau, transfer_weights
-from .streaming import EncodedFrame, FrameWeights, LarynxStream, frame_weights, generate, tensor_bytes, trimmed_mean
+from .config import SIZES, LarynxDataFields, LarynxTransformerConfig
+from .ensemble import LarynxEnsemble, build_model, ensemble_of
+from .model import LarynxTransformer, build_member, predict_tau, transfer_weights
+from .streaming import LarynxStream, trimmed_mean
 
 __all__ = [
-    "DATA_KEYS", "SIZES", "STYLE_TABLES", "Block", "BlockFrameWeights", "BlockState", "CausalConv", "CrossAttention",
-    "EncodedFrame", "EncoderFrameWeights", "EncoderState", "ExpressionEncoder", "FrameWeights", "LarynxDataFields",
-    "LarynxEnsemble", "LarynxStream", "LarynxTransformer", "LarynxTransformerConfig",
-    "SelfAttention", "Smoothing", "WindowCache", "alibi_slopes", "attend_one", "banded_attention", "block_frame",
-    "build_member", "build_model", "cross_frame", "encoder_frame", "ensemble_of", "frame_weights",
-    "generate", "predict_tau", "relative_bias", "step_bias", "tensor_bytes", "transfer_weights",
-    "trimmed_mean", "with_subjects",
+    "SIZES", "LarynxDataFields", "LarynxEnsemble", "LarynxStream", "LarynxTransformer", "LarynxTransformerConfig",
+    "build_member", "build_model", "ensemble_of", "predict_tau", "transfer_weights", "trimmed_mean",
 ]

@@ -40,11 +40,6 @@ class LarynxTransformerConfig:
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
 
-    @property
-    def receptive_field(self) -> int:
-        """Frames of psi the expression encoder's output at frame t depends on (t and before)."""
-        return 1 + (self.expression_kernel - 1) * sum(int(d) for d in self.expression_dilations)
-
 
 @dataclass
 class LarynxDataFields:

@@ -105,12 +105,6 @@ class LarynxTransformer(nn.Module):
         """tau [B,T] (UV units) from psi [B,T,55], streamed with the cache (any length; :func:`generate`)."""
         return generate(self.stream(psi.shape[0], subject), psi, chunk)
 
-    @torch.no_grad()
-    def generate_uncached(self, psi: Tensor, subject: Tensor | None = None) -> Tensor:
-        """Decoding as FaceFormer does it: rerun ``forward`` on the whole prefix at every frame (O(T^2)); the
-        reference of what the stream computes frame by frame, and of its cost."""
-        return torch.stack([self.forward(psi[:, : t + 1], subject)[:, -1] for t in range(psi.shape[1])], dim=1)
-
 
 def build_member(model_config: dict) -> LarynxTransformer:
     """The network of ``model_config``: exactly the fields of :class:`LarynxTransformerConfig`

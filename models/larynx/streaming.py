@@ -6,15 +6,18 @@ written beside it: :func:`~models.larynx.encoder.encoder_frame` (the expression 
 :func:`~models.larynx.block.cross_frame` and :func:`~models.larynx.block.block_frame` (each block's
 self-attention over a cache of ``window`` frames).  They compute from a snapshot of the weights laid out for
 single-frame products (:class:`FrameWeights`, :mod:`.folding`).
+
+A member is a :class:`~models.larynx.model.LarynxTransformer` (this module reads its ``expression``, ``blocks``,
+``head``, ``tau_mean``, ``tau_scale``, ``window``, ``cfg``, ``token_base`` and ``output_gain``); the model
+imports this module for its ``stream``, so the members are typed as the ``nn.Module`` they are.
 """
 from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from base.threads import single_thread
 from data.expressions import NUM_EXPRESSIONS
@@ -23,16 +26,13 @@ from .block import BlockFrameWeights, BlockState, block_frame, cross_frame
 from .encoder import EncoderFrameWeights, encoder_frame, member_state, stack_states
 from .folding import linear, stacked
 
-if TYPE_CHECKING:
-    from .model import LarynxTransformer
-
 
 class FrameWeights:
     """The weights of one live frame of every member, taken from the models once per :class:`LarynxStream` and
     stacked (:mod:`.folding`): the encoder's (:class:`EncoderFrameWeights`), each block's
     (:class:`BlockFrameWeights`), the head's, and each member's tau normalisation [K,1]."""
 
-    def __init__(self, members: list[LarynxTransformer]):
+    def __init__(self, members: list[nn.Module]):
         self.encoder = EncoderFrameWeights([m.expression for m in members])
         self.blocks = [BlockFrameWeights(list(blocks)) for blocks in zip(*(m.blocks for m in members))]
         self.head = stacked([linear(m.head) for m in members])
@@ -58,7 +58,7 @@ def trimmed_mean(tau: Tensor) -> Tensor:
 _SNAPSHOTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def frame_weights(members: list[LarynxTransformer]) -> FrameWeights:
+def frame_weights(members: list[nn.Module]) -> FrameWeights:
     """The :class:`FrameWeights` of ``members``, one snapshot shared by every stream made while their parameters
     are unchanged (a phone per stream reads the same weights, which stay in the CPU's cache: four streams of an
     ensemble step about 30% faster than with a copy each); a parameter or buffer changed since (an optimiser
@@ -90,8 +90,7 @@ class LarynxStream:
     member for a single model, K for an ensemble, :mod:`.ensemble`), all members computed in the same calls.
     The stream keeps the expression encoder's state (:class:`~models.larynx.encoder.EncoderState`: convolution
     history, recurrent state, smoothed values, stacked over the members) and per block a :class:`BlockState` (a
-    self-attention cache of ``window`` frames).  Nothing in it grows with the position (:func:`tensor_bytes`
-    measures it).
+    self-attention cache of ``window`` frames).  Nothing in it grows with the position (the tests measure it).
 
     The frames are computed from ``weights`` (:class:`FrameWeights`), a snapshot of the members' taken when the
     stream is made and shared with the other streams of the same weights (:func:`frame_weights`): make a new
@@ -99,7 +98,7 @@ class LarynxStream:
     :func:`generate` does) run the encoder's modules over all of them; the decoder always runs frame by frame.
     """
 
-    def __init__(self, members: list[LarynxTransformer], batch_size: int = 1, subject: Tensor | None = None):
+    def __init__(self, members: list[nn.Module], batch_size: int = 1, subject: Tensor | None = None):
         self.members = list(members)
         self.batch_size = batch_size
         first = self.members[0]
@@ -114,11 +113,6 @@ class LarynxStream:
         self.blocks = [BlockState.start(count, cfg.n_heads, cfg.d_model // cfg.n_heads, first.window, dtype,
                                         device) for _ in first.blocks]
         self.expression_state = stack_states([m.expression.initial_state(batch_size, dtype) for m in self.members])
-
-    def state_bytes(self) -> int:
-        """Bytes of the tensors the stream carries from frame to frame: all it holds but its models and its
-        snapshot of the weights (both fixed for the stream's life)."""
-        return tensor_bytes(self, exclude=(self.members, self.weights))
 
     @torch.inference_mode()
     def encode(self, psi: Tensor) -> list[EncodedFrame]:
@@ -179,29 +173,3 @@ def generate(stream: LarynxStream, psi: Tensor, chunk: int = 1024) -> Tensor:
             for t, frame in enumerate(frames):
                 out[:, start + t] = stream.advance(frame)
     return out
-
-
-def tensor_bytes(root, exclude: tuple = ()) -> int:
-    """Bytes of the storage of every tensor reachable from ``root`` through attributes, lists, tuples, dicts
-    and dataclasses, each storage counted once (views share it); objects in ``exclude`` (e.g. the model,
-    whose weights do not belong to a stream) are not entered."""
-    seen_storages, seen_objects, total = set(), set(), 0
-    skip = {id(x) for x in exclude}
-    pending = [root]
-    while pending:
-        obj = pending.pop()
-        if id(obj) in seen_objects or id(obj) in skip:
-            continue
-        seen_objects.add(id(obj))
-        if isinstance(obj, Tensor):
-            storage = obj.untyped_storage()
-            if storage.data_ptr() not in seen_storages:
-                seen_storages.add(storage.data_ptr())
-                total += storage.nbytes()
-        elif isinstance(obj, dict):
-            pending.extend(obj.values())
-        elif isinstance(obj, (list, tuple, set)):
-            pending.extend(obj)
-        elif hasattr(obj, "__dict__") and not isinstance(obj, type):
-            pending.extend(vars(obj).values())
-    return total

@@ -6,7 +6,7 @@ checkpoints (``models.checkpoint``: ``task``, ``model_config``, ``model``; no op
 by ``train.py`` on the built-in procedural rig and synthetic data only: nothing in them is derived from
 the HACK release.  ``benchmarks/retrain_pretrained.py`` retrains them and compares with the manifest.
 
-Shipping a trained run: ``python -m models.pretrained run=runs/<task>/<time> name=<file stem>`` (``.cli``).
+Shipping a trained run is release tooling, outside the product: ``python -m tools.ship_model`` (``tools/``).
 Each task has a default model (``DEFAULTS``, a setting's ``default``) and may ship others by name
 (``NAMED``: ``head2neck=hack`` is ``head2neck_hack.pt``, trained on the prior's HACK style).
 """
@@ -15,12 +15,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import subprocess
 from pathlib import Path
 
 from base.errors import InputError
-from base.files import write_text
-from models.checkpoint import load_checkpoint, load_model, save_checkpoint
+from models.checkpoint import load_model
 
 PRETRAINED = Path(__file__).resolve().parent
 MANIFEST = PRETRAINED / "manifest.json"
@@ -94,61 +92,3 @@ def chosen_checkpoint(value: str | None, task: str, key: str, part: str,
 def load_default(task: str):
     """(model in eval mode, checkpoint dict) of the shipped default model of ``task``."""
     return load_model(default_checkpoint(task), task=task)
-
-
-def git_commit() -> str:
-    """HEAD's commit, "+uncommitted changes" when a tracked file other than the shipped files and the manifest
-    differs from it (those change as each model is shipped, so they do not count)."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
-                             cwd=PRETRAINED.parent.parent)
-        shipped = [f":(exclude)models/pretrained/{p}" for p in ("*.pt", "*.csv", "manifest.json")]
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".", *shipped],
-                               capture_output=True, text=True, cwd=PRETRAINED.parent.parent).stdout.strip()
-        return out.stdout.strip() + ("+uncommitted changes" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def evaluated_checkpoint(run_dir: Path) -> str:
-    """The checkpoint whose weights a run's eval.json scored: ``best.pt`` when the run restored its best weights
-    (``trainer.restore_best``), else ``last.pt``."""
-    last = load_checkpoint(run_dir / "checkpoints" / "last.pt")
-    restored = bool(last.get("config", {}).get("trainer", {}).get("restore_best"))
-    return "best.pt" if restored and (run_dir / "checkpoints" / "best.pt").is_file() else "last.pt"
-
-
-def ship(run_dir: str | os.PathLike, name: str, command: str, checkpoint: str | None = None) -> dict:
-    """Write the weights of a ``train.py`` run as ``models/pretrained/<name>.pt`` and its manifest entry
-    (``checkpoint`` None: the weights eval.json scored, :func:`evaluated_checkpoint`)."""
-    run_dir = Path(run_dir)
-    checkpoint = evaluated_checkpoint(run_dir) if checkpoint is None else checkpoint
-    state = load_checkpoint(run_dir / "checkpoints" / checkpoint)
-    evaluation_path = run_dir / "eval.json"
-    if not evaluation_path.is_file():
-        raise InputError(f"{evaluation_path}: not found; ship a finished run (it writes eval.json at the end)")
-    evaluation = json.loads(evaluation_path.read_text())
-    path = PRETRAINED / f"{name}.pt"
-    weights = {"task": state["task"], "model_config": state["model_config"], "step": state.get("step"),
-               "model": {k: v.clone() for k, v in state["model"].items()}}
-    save_checkpoint(path, weights)
-    load_model(path, task=state["task"])  # it must rebuild
-    manifest = read_manifest()
-    manifest[name] = {"file": path.name, "task": state["task"], "sha256": sha256(path), "bytes": path.stat().st_size,
-                      "command": command, "commit": git_commit(), "eval": evaluation,
-                      "trained_on": "built-in procedural rig and synthetic data (no third-party data)"}
-    write_text(MANIFEST, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
-    return manifest[name]
-
-
-def ship_file(path: str | os.PathLike, name: str, task: str, command: str, evaluation: dict) -> dict:
-    """Enter a file already under ``models/pretrained/`` (e.g. the swallow template) in the manifest."""
-    path = Path(path)
-    if path.parent.resolve() != PRETRAINED.resolve():
-        raise InputError(f"{path}: shipped files live in {PRETRAINED}")
-    manifest = read_manifest()
-    manifest[name] = {"file": path.name, "task": task, "sha256": sha256(path), "bytes": path.stat().st_size,
-                      "command": command, "commit": git_commit(), "eval": evaluation,
-                      "trained_on": "synthetic data from the project's own generators (no third-party data)"}
-    write_text(MANIFEST, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
-    return manifest[name]

@@ -23,7 +23,7 @@ from torch.autograd.function import once_differentiable
 
 from base.threads import single_thread
 from models.rig.skinning import apply_blended, apply_dual_quaternions, blend_dual_quaternions
-from models.rig.workers import WORKERS, usable_cpus
+from models.rig.workers import run_tasks, usable_cpus
 
 # Vertex-frames per chunk: the chunk's blended transforms (48 bytes each) stay in a core's L2 cache; at
 # least 256 vertices so the per-chunk Python overhead stays small.
@@ -192,7 +192,7 @@ class Chunks:
                 chunk = self.skin(i, rest, weights, columns, signed)
             posed[:, start:stop].copy_(chunk.permute(1, 2, 0))  # while the chunk is in cache
 
-        WORKERS.run(task, len(self.plan), threads)
+        run_tasks(task, len(self.plan), threads)
         return posed
 
     def gradients(self, threads: int, grad: torch.Tensor, needs: Sequence[bool], coefficients, larynx, basis,
@@ -228,7 +228,7 @@ class Chunks:
                 grad_weights[start:stop] = result[3]
             shared[i] = (result.get(0), result.get(4), result.get(5))
 
-        WORKERS.run(task, len(self.plan), threads)
+        run_tasks(task, len(self.plan), threads)
 
         def total(k: int) -> torch.Tensor | None:
             parts = [piece[k] for piece in shared if piece is not None and piece[k] is not None]

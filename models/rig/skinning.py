@@ -71,14 +71,18 @@ def larynx_offsets(tau: torch.Tensor, eta: torch.Tensor, maps: torch.Tensor, map
 def forward_kinematics(rotations: torch.Tensor, rest_local: torch.Tensor, parents: Sequence[int]) -> torch.Tensor:
     """World transforms of the bones.  G_j = G_parent(j) @ L2P_j @ [R_j 0; 0 1].
 
-    rotations [B,J,3,3], rest_local [J,4,4] -> [B,J,4,4].
+    rotations [B,J,3,3], rest_local [J,4,4] -> [B,J,4,4]; with rest_local [J,3,3] (the rest rotations
+    alone) the chain's world rotations [B,J,3,3] (what a head orientation needs: translations turn nothing).
     """
     batch, joints = rotations.shape[:2]
-    local = rest_local[None].expand(batch, -1, -1, -1)
-    posed_local = torch.cat([local[..., :3, :3] @ rotations, local[..., :3, 3:]], dim=-1)
-    bottom = torch.zeros(batch, joints, 1, 4, dtype=rotations.dtype, device=rotations.device)
-    bottom[..., 3] = 1.0
-    posed_local = torch.cat([posed_local, bottom], dim=-2)
+    if rest_local.shape[-1] == 3:
+        posed_local = rest_local @ rotations
+    else:
+        local = rest_local[None].expand(batch, -1, -1, -1)
+        posed_local = torch.cat([local[..., :3, :3] @ rotations, local[..., :3, 3:]], dim=-1)
+        bottom = torch.zeros(batch, joints, 1, 4, dtype=rotations.dtype, device=rotations.device)
+        bottom[..., 3] = 1.0
+        posed_local = torch.cat([posed_local, bottom], dim=-2)
     world: list[torch.Tensor] = []
     for j, parent in enumerate(parents):
         world.append(posed_local[:, j] if parent < 0 else world[parent] @ posed_local[:, j])

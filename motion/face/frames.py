@@ -27,6 +27,9 @@ import numpy as np
 from base.errors import InputError, require_file
 
 COUNT_SLACK = 0  # frames the header may overstate before the missing ones count as corrupt
+# The file suffixes read as videos (through OpenCV's FFmpeg): a take's face video here, a normal-map video in
+# the tracker (``motion.track.sources``).
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 
 
 @contextlib.contextmanager

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import re
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,6 +42,7 @@ from base.cli import REQUIRED, register_config, to_dataclass
 from base.errors import InputError
 from base.files import atomic_folder, require_new_folder
 from base.progress import progress_bar
+from base.stopwatch import StageSeconds
 from data.assets import RigData
 from data.procedural_rig import build_procedural_rig
 from models.fit import FitSettings, fit_meshes, fit_scans
@@ -131,34 +131,31 @@ def run(cfg) -> dict:
     out_dir = Path(settings.out_dir)
     require_new_folder(out_dir)
     solver, fit = solver_settings(settings), fitter(settings.kind)
-    started = time.perf_counter()
-    rig = build_procedural_rig() if settings.rig in ("", "builtin") else RigData.load(settings.rig)
-    with progress_bar(desc="reading", unit="frame", disable=not settings.progress) as bar:
-        capture = read_capture(settings.input, settings.kind, settings.units, rig.template,
-                               progress=lambda k: bar.update(k - bar.n))
-    seconds = {"read": time.perf_counter() - started}
-    started = time.perf_counter()
-    model = HeadNeckModel(rig)   # after reading: bad input is refused before the rig's set-up
-    seconds["rig"] = time.perf_counter() - started
+    seconds = StageSeconds()
+    with seconds.time("read"):
+        rig = build_procedural_rig() if settings.rig in ("", "builtin") else RigData.load(settings.rig)
+        with progress_bar(desc="reading", unit="frame", disable=not settings.progress) as bar:
+            capture = read_capture(settings.input, settings.kind, settings.units, rig.template,
+                                   progress=lambda k: bar.update(k - bar.n))
+    with seconds.time("rig"):
+        model = HeadNeckModel(rig)   # after reading: bad input is refused before the rig's set-up
 
-    started = time.perf_counter()
-    with progress_bar(total=len(capture), desc="fitting", unit="frame", disable=not settings.progress) as bar:
+    with seconds.time("fit"), progress_bar(total=len(capture), desc="fitting", unit="frame",
+                                           disable=not settings.progress) as bar:
         try:
             result = fit(model, capture.frames, solver, progress=lambda k: bar.update(k - bar.n))
         except InputError as e:   # the solver names a frame by its index: name its file too
             raise InputError(name_frame(str(e), capture.names)) from None
-    seconds["fit"] = time.perf_counter() - started
 
-    started = time.perf_counter()
     producers = {"tool": "motion.fit", "fit": f"models.fit.{fit.__name__}", "source": capture.source,
                  "kind": settings.kind, "units": settings.units, "fit_shape": solver.fit_shape}
-    params = fit_params(result, model, float(settings.fps), rig_label(settings.rig), producers)
     outputs = settings.outputs()
     lines = []
     with atomic_folder(out_dir) as staging:
-        output_seconds = write_outputs(outputs, Models(rig=model, rig_name=rig_label(settings.rig)), params, staging,
-                                       announce=lines.append, out_dir=out_dir)
-        seconds["write"] = time.perf_counter() - started
+        with seconds.time("write"):
+            params = fit_params(result, model, float(settings.fps), rig_label(settings.rig), producers)
+            output_seconds = write_outputs(outputs, Models(rig=model, rig_name=rig_label(settings.rig)), params,
+                                           staging, announce=lines.append, out_dir=out_dir)
         report = fit_report(params, result, model, capture.names, seconds, {
             **{k: v for k, v in dataclasses.asdict(settings).items() if k != "solver"},
             "solver": dataclasses.asdict(solver)})

@@ -1,7 +1,6 @@
 """One capture to animation parameters: read the take, run the larynx and neck models, insert swallows."""
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +8,7 @@ import torch
 
 from base.cli import as_list
 from base.errors import InputError
+from base.stopwatch import StageSeconds
 from base.timebase import GAP_SECONDS, fill_held, grid_segments
 from data.demo_take import DEMO_SOURCE, SWALLOW_ONSET, demo_take
 from data.expressions import EXPRESSION_NAMES, ExpressionTrack, arkit_name, read_expressions
@@ -17,11 +17,11 @@ from models.head2neck import predict_theta
 from models.larynx import predict_tau
 from models.pretrained import pretrained_path
 from motion.face import read_face_video
+from motion.face.frames import VIDEO_SUFFIXES
 from motion.head2neck import head_rotations_from_ypr, recentered
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models
 from motion.swallow import insert_swallows, read_template
-from motion.track.sources import VIDEO_SUFFIXES
 from motion.voice import load_voice, voice_on_frames
 
 # Expressions no ARKit capture has (ICT's cheekRaiser_L/R): their absence is a note, not an error.
@@ -61,11 +61,15 @@ def segmented_tau(model, psi: np.ndarray, segment: np.ndarray, held: np.ndarray,
     return fill_held(tau, held)
 
 
-def head_theta(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=print) -> np.ndarray:
-    """Bone-frame theta [T,J,3] from the take's head rotation (zeros without a neck model or rotation)."""
-    theta = np.zeros((len(track), models.rig.num_joints, 3), dtype=np.float32)
+@torch.no_grad()
+def head_theta(cfg: InferConfig, models: Models, track: ExpressionTrack,
+               announce=print) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bone-frame theta [T,J,3] from the take's head rotation, and the head orientation it poses [T,3,3]
+    (``HeadNeckModel.head_rotation``: the target where the joint limits let the chain reach it); the neck at
+    rest (zeros, the identity) without a neck model or a rotation."""
+    rest = (torch.zeros(len(track), models.rig.num_joints, 3), torch.eye(3).repeat(len(track), 1, 1))
     if models.neck is None:
-        return theta
+        return rest
     if track.head_rotation is not None:  # a face video's pose: rotation matrices in the rig's frame
         signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
         if signs != (1.0, 1.0, 1.0):
@@ -73,47 +77,45 @@ def head_theta(cfg: InferConfig, models: Models, track: ExpressionTrack, announc
                              f"and roll; a video's head pose is already in the rig's frame (mirror=true for "
                              f"selfie-mirrored footage)")
         head = torch.as_tensor(track.head_rotation, dtype=torch.float32)
-        return predict_theta(models.neck, models.rig, recentered(head) if cfg.recenter else head).numpy()
-    if track.head_ypr is None:
+    elif track.head_ypr is None:
         announce(f"{track.source}: no head rotation recorded (HeadYaw/HeadPitch/HeadRoll absent or zero); "
                  f"the neck rests")
-        return theta
-    signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
-    head = head_rotations_from_ypr(track.head_ypr, cfg.head_units, signs,
-                                   f"{track.source} (HeadYaw, HeadPitch, HeadRoll)")
-    return predict_theta(models.neck, models.rig, recentered(head) if cfg.recenter else head).numpy()
+        return rest
+    else:
+        signs = (float(cfg.yaw_sign), float(cfg.pitch_sign), float(cfg.roll_sign))
+        head = head_rotations_from_ypr(track.head_ypr, cfg.head_units, signs,
+                                       f"{track.source} (HeadYaw, HeadPitch, HeadRoll)")
+    theta = predict_theta(models.neck, models.rig, recentered(head) if cfg.recenter else head)
+    return theta, models.rig.head_rotation(theta)
 
 
 def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=print,
-            audio: str | None = None) -> tuple[AnimationParams, dict]:
-    """The per-frame rig inputs for one take, and the seconds each stage took.
+            audio: str | None = None, seconds: StageSeconds | None = None) -> AnimationParams:
+    """The per-frame rig inputs for one take; the seconds each stage took are added to ``seconds``.
 
     With ``audio`` (the take's sound, aligned with the capture at their start) the voice term
     (``motion.voice``: larynx height from F0, zero-mean over the take) is added to the larynx model's tau,
     before swallows are inserted; without it nothing changes."""
-    seconds = {}
-    started = time.perf_counter()
-    fps = models.larynx.fps if models.larynx is not None else float(cfg.out_fps or track.fps)
-    uniform = track.resampled(fps, GAP_SECONDS)  # the gap rule, as the live receiver applies it
-    seconds["resample"] = time.perf_counter() - started
-    started = time.perf_counter()
-    if models.larynx is not None:
-        tau = segmented_tau(models.larynx, uniform.psi, *grid_segments(track.time, fps), cfg.subject)
-    else:
-        tau = np.zeros(len(uniform))
-    seconds["larynx"] = time.perf_counter() - started
+    seconds = StageSeconds() if seconds is None else seconds
+    with seconds.time("resample"):
+        fps = models.larynx.fps if models.larynx is not None else float(cfg.out_fps or track.fps)
+        uniform = track.resampled(fps, GAP_SECONDS)  # the gap rule, as the live receiver applies it
+    with seconds.time("larynx"):
+        if models.larynx is not None:
+            tau = segmented_tau(models.larynx, uniform.psi, *grid_segments(track.time, fps), cfg.subject)
+        else:
+            tau = np.zeros(len(uniform))
     f0 = tau_voice = None
     voice_producers = {}
     if audio is not None:
-        started = time.perf_counter()
-        frame_time = uniform.time - uniform.time[0]
-        capture_seconds = float(track.time[-1] - track.time[0]) + 1.0 / track.fps
-        f0, tau_voice, summary = voice_on_frames(audio, frame_time, str(track.source), capture_seconds,
-                                                 load_voice(cfg.voice), cfg.audio_tolerance, announce)
-        if tau_voice is not None:
-            tau = tau + tau_voice
-        voice_producers = {"audio": str(audio), "voice": str(cfg.voice), **summary}
-        seconds["voice"] = time.perf_counter() - started
+        with seconds.time("voice"):
+            frame_time = uniform.time - uniform.time[0]
+            capture_seconds = float(track.time[-1] - track.time[0]) + 1.0 / track.fps
+            f0, tau_voice, summary = voice_on_frames(audio, frame_time, str(track.source), capture_seconds,
+                                                     load_voice(cfg.voice), cfg.audio_tolerance, announce)
+            if tau_voice is not None:
+                tau = tau + tau_voice
+            voice_producers = {"audio": str(audio), "voice": str(cfg.voice), **summary}
     onsets = [float(t) for t in as_list(cfg.swallow_at)]
     if track.source == DEMO_SOURCE and not onsets:
         onsets = [SWALLOW_ONSET]
@@ -126,16 +128,12 @@ def animate(cfg: InferConfig, models: Models, track: ExpressionTrack, announce=p
                                   as_list(cfg.swallow_amplitude_scale), playback)
         except ValueError as e:  # an onset outside the take, scales that do not match the onsets
             raise InputError(f"swallow_at={onsets} in {track.source}: {e}") from None
-    started = time.perf_counter()
-    theta = head_theta(cfg, models, uniform, announce)
-    with torch.no_grad():
-        head = models.rig.head_rotation(torch.as_tensor(theta)).numpy()
-    seconds["head2neck"] = time.perf_counter() - started
-    params = AnimationParams(
+    with seconds.time("head2neck"):
+        theta, head = head_theta(cfg, models, uniform, announce)
+    return AnimationParams(
         time=uniform.time - uniform.time[0], fps=fps, psi=uniform.psi, tau=tau,
-        eta=np.full(len(uniform), float(cfg.eta)), theta=theta, head_rotation=head,
+        eta=np.full(len(uniform), float(cfg.eta)), theta=theta.numpy(), head_rotation=head.numpy(),
         joint_names=models.rig.joint_names, expression_names=models.rig.expression_names,
         rig=models.rig_name, rig_checksum=rig_checksum(models.rig.rig),
         producers={**models.producers, "swallows": onsets, "source": str(track.source), **voice_producers},
         f0=f0, tau_voice=tau_voice)
-    return params, seconds

@@ -12,11 +12,11 @@ from omegaconf import OmegaConf
 from base.errors import InputError
 from base.files import require_new_folder, write_csv
 from base.progress import progress_bar
+from motion.face.frames import VIDEO_SUFFIXES
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models, load_models
 from motion.pipeline.take import run_take, take_audio
 from motion.swallow import PlaybackConfig
-from motion.track.sources import VIDEO_SUFFIXES
 
 CAPTURE_SUFFIXES = (".csv", ".npy")
 TAKE_SUFFIXES = CAPTURE_SUFFIXES + VIDEO_SUFFIXES  # videos go through the face stage (motion.face)

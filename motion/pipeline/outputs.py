@@ -2,7 +2,6 @@
 viewer.html, anim.fbx and anim.usdc (.usda, .usdz)."""
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -12,20 +11,21 @@ from base.files import write_csv
 from base.plots import figure, save_figure
 from base.progress import progress_bar
 from base.rotations import matrix_to_axis_angle
+from base.stopwatch import StageSeconds
 from data.mesh_io import write_obj, write_ply
-from data.params import AnimationParams, load_params, save_params
+from data.params import AnimationParams, save_params
 from models.rig import HeadNeckModel
 from motion.pipeline.config import InferConfig
 from motion.pipeline.models import Models
 from scene.characters import person_rig
 from scene.fbx import export_fbx
-from scene.gltf import export_glb
+from scene.gltf import build_glb, write_glb
 from scene.preview import Panel, anatomical_degrees, write_preview
 from scene.usd import export_usd
 from scene.viewer import build_viewer
 
 
-def write_params_csv(path: Path, params: AnimationParams, rig: HeadNeckModel) -> None:
+def write_params_csv(path: Path, params: AnimationParams) -> None:
     """One row a frame: time, tau, eta, (with audio: f0 in Hz, 0 = unvoiced, and tau_voice, the voice's share
     of tau; from a fit: fit_rms_mm, the placement's translation root_t{x,y,z} in cm and rotation root_r{x,y,z}
     as axis-angle radians), the 55 weights, and each joint's bone-frame axis-angle (rad)."""
@@ -106,60 +106,53 @@ def write_meshes(folder: Path, rig: HeadNeckModel, params: AnimationParams, mesh
 
 
 def write_outputs(cfg: InferConfig, models: Models, params: AnimationParams, folder: Path, announce=print,
-                  out_dir: Path | None = None) -> dict:
+                  out_dir: Path | None = None, source_params: AnimationParams | None = None,
+                  seconds: StageSeconds | None = None) -> StageSeconds:
     """Everything for one take into ``folder`` (``params`` drive the character when there is one); the
-    seconds each output took.  ``out_dir``: where ``folder`` (a staging folder) ends up, the name the
-    reports give and the viewer's title."""
+    seconds each output took (added to ``seconds`` when given).  ``out_dir``: where ``folder`` (a staging
+    folder) ends up, the name the reports give and the viewer's title.  ``source_params``: the take on the
+    capture's own rig (``models.rig``) when ``params`` were retargeted onto a character, shown beside it in
+    the preview and the viewer.  The GLB is built once, in memory, for anim.glb, the viewer and Blender."""
     out_dir = folder if out_dir is None else out_dir
+    seconds = StageSeconds() if seconds is None else seconds
 
     def report_line(report) -> None:
         announce(report.summary().replace(str(folder), str(out_dir)))
 
     rig = models.rig if models.character is None else models.character
-    seconds = {}
-    started = time.perf_counter()
-    save_params(folder / "params.npz", params)
-    write_params_csv(folder / "params.csv", params, rig)
-    seconds["write"] = time.perf_counter() - started
+    source = str(params.producers["source"])
+    with seconds.time("write"):
+        save_params(folder / "params.npz", params)
+        write_params_csv(folder / "params.csv", params)
     if cfg.plot:
-        started = time.perf_counter()
-        plot_take(folder / "plot.png", params, rig)
-        seconds["plot"] = time.perf_counter() - started
+        with seconds.time("plot"):
+            plot_take(folder / "plot.png", params, rig)
     if cfg.meshes:
-        started = time.perf_counter()
-        write_meshes(folder / "meshes", rig, params, cfg.mesh_format)
-        seconds["meshes"] = time.perf_counter() - started
-    if "glb" in cfg.export:
-        started = time.perf_counter()
-        report = export_glb(params, rig, folder / "anim.glb", check=False,
-                            source=str(params.producers["source"]))
-        report_line(report)
-        seconds["glb"] = time.perf_counter() - started
+        with seconds.time("meshes"):
+            write_meshes(folder / "meshes", rig, params, cfg.mesh_format)
+    glb = None
+    if {"glb", "html", "fbx"} & set(cfg.export):
+        with seconds.time("glb"):  # morph normals only for the file and the page (Blender recomputes normals)
+            glb = build_glb(params, rig, check=False, source=source,
+                            morph_normals=bool({"glb", "html"} & set(cfg.export)))
+            if "glb" in cfg.export:
+                report_line(write_glb(glb, folder / "anim.glb"))
     if "mp4" in cfg.export:
-        started = time.perf_counter()
-        panels = [Panel.create(rig, params)]
-        if models.character is not None:  # side by side: the capture's own rig, then the character
-            panels.insert(0, Panel.create(models.rig, load_params(folder / "source_params.npz")))
-        write_preview(folder / "preview.mp4", panels)
-        seconds["mp4"] = time.perf_counter() - started
-    if "html" in cfg.export:  # the GLB just written is embedded as it is
-        started = time.perf_counter()
-        glb = folder / "anim.glb" if "glb" in cfg.export else None
-        companion = None if models.character is None else (load_params(folder / "source_params.npz"), models.rig)
-        report = build_viewer(params, rig, folder / "viewer.html", glb=glb, title=out_dir.name, companion=companion)
-        report_line(report)
-        seconds["html"] = time.perf_counter() - started
-    if "fbx" in cfg.export:  # Blender converts the GLB just written, else one made for it
-        started = time.perf_counter()
-        glb = folder / "anim.glb" if "glb" in cfg.export else None
-        take = Path(str(params.producers.get("source", "hackneck"))).stem
-        report = export_fbx(params, rig, folder / "anim.fbx", cfg.fbx_units, glb=glb, take=take)
-        report_line(report)
-        seconds["fbx"] = time.perf_counter() - started
+        with seconds.time("mp4"):
+            panels = [Panel.create(rig, params)]
+            if source_params is not None:  # side by side: the capture's own rig, then the character
+                panels.insert(0, Panel.create(models.rig, source_params))
+            write_preview(folder / "preview.mp4", panels)
+    if "html" in cfg.export:
+        with seconds.time("html"):
+            companion = None if source_params is None else (source_params, models.rig)
+            report_line(build_viewer(params, rig, folder / "viewer.html", glb=glb.raw, title=out_dir.name,
+                                     companion=companion))
+    if "fbx" in cfg.export:
+        with seconds.time("fbx"):
+            take = Path(str(params.producers.get("source", "hackneck"))).stem
+            report_line(export_fbx(params, rig, folder / "anim.fbx", cfg.fbx_units, glb=glb.raw, take=take))
     if "usd" in cfg.export:
-        started = time.perf_counter()
-        report = export_usd(params, rig, folder / f"anim.{cfg.usd_format}", cfg.usd_units,
-                            source=str(params.producers["source"]))
-        report_line(report)
-        seconds["usd"] = time.perf_counter() - started
+        with seconds.time("usd"):
+            report_line(export_usd(params, rig, folder / f"anim.{cfg.usd_format}", cfg.usd_units, source=source))
     return seconds

@@ -65,7 +65,7 @@ from motion.retarget.posing import MESH_FORMATS, SKINNINGS, supports_skinning, w
 from motion.retarget.transfer import GAIN_CHOICES, default_gains, retarget_params
 from scene.characters import GiraffeSettings, load_character
 from scene.fbx import FBX_UNITS, blender_executable, export_fbx
-from scene.gltf import export_glb
+from scene.gltf import build_glb, write_glb
 from scene.usd import USD_FORMATS, USD_UNITS, export_usd, require_usd
 from scene.viewer import build_viewer
 
@@ -203,17 +203,18 @@ def run(cfg) -> AnimationParams | None:
                              settings.batch)
         lines.append(f"wrote {count} {settings.mesh_format.upper()} meshes ({settings.skinning}) to "
                      f"{out_dir / 'meshes'} in {timer.perf_counter() - posing:.1f} s")
+    glb = None
+    if {"glb", "html", "fbx"} & set(settings.export):  # one GLB for the file, the page and Blender
+        glb = build_glb(result, target, check="glb" in settings.export, source=str(out_dir / "params.npz"),
+                        morph_normals=bool({"glb", "html"} & set(settings.export)))
     if "glb" in settings.export:
-        report = export_glb(result, target, out_dir / "animation.glb", source=str(out_dir / "params.npz"))
-        lines.append(report.summary())
+        lines.append(write_glb(glb, out_dir / "animation.glb").summary())
     if "html" in settings.export:
-        glb = out_dir / "animation.glb" if "glb" in settings.export else None
         companion = None if settings.character == "human" else (params, source)   # the source beside the character
-        lines.append(build_viewer(result, target, out_dir / "viewer.html", glb=glb, title=out_dir.name,
+        lines.append(build_viewer(result, target, out_dir / "viewer.html", glb=glb.raw, title=out_dir.name,
                                   companion=companion).summary())
     if "fbx" in settings.export:
-        glb = out_dir / "animation.glb" if "glb" in settings.export else None
-        lines.append(export_fbx(result, target, out_dir / "animation.fbx", settings.fbx_units, glb=glb,
+        lines.append(export_fbx(result, target, out_dir / "animation.fbx", settings.fbx_units, glb=glb.raw,
                                 take=out_dir.name).summary())
     if "usd" in settings.export:
         lines.append(export_usd(result, target, out_dir / f"animation.{settings.usd_format}", settings.usd_units,

@@ -16,33 +16,27 @@ by their peaks and valleys; the curve then drives the larynx slide ``tau`` of an
   ``insert_swallows``);
 - :mod:`motion.swallow.files`: template files, the tracks they are built from, plots
   (``read_template``, ``write_template``, ``read_tracks``);
-- :mod:`motion.swallow.baseline`: the five-landmark registration templates are measured against;
 - :mod:`motion.swallow.cli`: ``python -m motion.swallow`` (``configs/swallow.yaml``).
 
 Conventions: tau units and sign ``data.tau_track``; a template is the displacement from rest
-(0 at rest), time 0 at its onset, uniform at ``RegistrationConfig.template_fps``.
+(0 at rest), time 0 at its onset, uniform at ``RegistrationConfig.template_fps``.  The five-landmark
+registration templates are measured against is ``benchmarks/swallow_baseline.py``.
 """
-from motion.swallow.detect import analyse_track, detect_swallows, uniform_track
-from motion.swallow.events import LANDMARK_NAMES, DetectionConfig, SwallowEvent, TrackAnalysis
+from motion.swallow.detect import analyse_track, detect_swallows
+from motion.swallow.events import DetectionConfig, SwallowEvent
 from motion.swallow.files import read_template, read_tracks, write_template
 from motion.swallow.play import PlaybackConfig, insert_swallows
 from motion.swallow.register import (
-                                   ClipReport,
-                                   RegistrationConfig,
-                                   SwallowTemplate,
-                                   TemplateBuild,
-                                   build_template,
-                                   chained_target,
-                                   landmark_warps,
-                                   nan_mean_std,
-                                   register_curves,
-                                   select_landmarks,
-                                   template_error,
+    RegistrationConfig,
+    SwallowTemplate,
+    build_template,
+    landmark_warps,
+    select_landmarks,
+    template_error,
 )
 
 __all__ = [
-    "LANDMARK_NAMES", "ClipReport", "DetectionConfig", "PlaybackConfig", "RegistrationConfig", "SwallowEvent",
-    "SwallowTemplate", "TemplateBuild", "TrackAnalysis", "analyse_track", "build_template", "chained_target",
-    "detect_swallows", "insert_swallows", "landmark_warps", "nan_mean_std", "read_template", "read_tracks",
-    "register_curves", "select_landmarks", "template_error", "uniform_track", "write_template",
+    "DetectionConfig", "PlaybackConfig", "RegistrationConfig", "SwallowEvent", "SwallowTemplate", "analyse_track",
+    "build_template", "detect_swallows", "insert_swallows", "landmark_warps", "read_template", "read_tracks",
+    "select_landmarks", "template_error", "write_template",
 ]

@@ -224,10 +224,6 @@ class TemplateBuild:
         return "\n".join(lines)
 
 
-def _robust_spread(x: np.ndarray, floor: float) -> float:
-    return max(1.4826 * float(np.median(np.abs(x - np.median(x)))), floor)
-
-
 def _inner_neighbours(times: np.ndarray, centre: int) -> np.ndarray:
     """[M,K] index of each landmark's nearest finite neighbour towards landmark ``centre`` in the same
     swallow (-1: none, or the centre itself)."""

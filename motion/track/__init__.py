@@ -28,29 +28,17 @@ Example::
     slide_px = rise_px + (track.neck[:, 1] - track.neck[0, 1])      # relative to the neck
 """
 from motion.track.calibration import calibrate_window, rig_px_per_tau
-from motion.track.cli import CSV_COLUMNS, TrackCli, plot_track, run, track_columns
-from motion.track.config import BandpassConfig, NeckConfig, SearchConfig, TrackerConfig, WindowConfig
-from motion.track.kernel import (
-                                 KERNEL_SIZE,
-                                 LarynxKernel,
-                                 bandpass,
-                                 kernel_from_file,
-                                 kernel_from_frame,
-                                 kernel_size_at,
-                                 match_window,
-                                 rescale_kernel,
-                                 rig_kernel,
-)
-from motion.track.match import LarynxTracker, Match, Track, raw_correlation_argmax, smooth_track, track_sequence
+from motion.track.cli import CSV_COLUMNS, run, track_columns
+from motion.track.config import BandpassConfig, SearchConfig, TrackerConfig
+from motion.track.kernel import kernel_from_file, kernel_from_frame, rescale_kernel, rig_kernel
+from motion.track.match import LarynxTracker, Track, smooth_track, track_sequence
 from motion.track.neck import NeckModel, NeckPatches
-from motion.track.scale import ScaleEstimate, check_scale, estimate_scale, sample_frames
-from motion.track.sources import NormalMapSource, check_normal_map, decode_frame, open_source
+from motion.track.scale import check_scale, estimate_scale, sample_frames
+from motion.track.sources import check_normal_map, decode_frame, open_source
 
 __all__ = [
-    "BandpassConfig", "CSV_COLUMNS", "KERNEL_SIZE", "LarynxKernel", "LarynxTracker", "Match", "NeckConfig",
-    "NeckModel", "NeckPatches", "NormalMapSource", "ScaleEstimate", "SearchConfig", "Track", "TrackCli",
-    "TrackerConfig", "WindowConfig", "bandpass", "calibrate_window", "check_normal_map", "check_scale",
-    "decode_frame", "estimate_scale", "kernel_from_file", "kernel_from_frame", "kernel_size_at", "match_window",
-    "open_source", "plot_track", "raw_correlation_argmax", "rescale_kernel", "rig_kernel", "rig_px_per_tau", "run",
+    "BandpassConfig", "CSV_COLUMNS", "LarynxTracker", "NeckModel", "NeckPatches", "SearchConfig", "Track",
+    "TrackerConfig", "calibrate_window", "check_normal_map", "check_scale", "decode_frame", "estimate_scale",
+    "kernel_from_file", "kernel_from_frame", "open_source", "rescale_kernel", "rig_kernel", "rig_px_per_tau", "run",
     "sample_frames", "smooth_track", "track_columns", "track_sequence",
 ]

@@ -250,10 +250,3 @@ def track_sequence(frames: Iterable[np.ndarray], kernel: LarynxKernel, config: T
                   np.array([np.clip(m.score, 0.0, 1.0) if m.accepted else 0.0 for m in matches]),
                   np.array([m.accepted for m in matches]), np.array([m.neck for m in matches], dtype=np.float64))
     return smooth_track(track, tracker.config.smooth_frames)
-
-
-def raw_correlation_argmax(normals: np.ndarray, kernel: LarynxKernel) -> tuple[float, float]:
-    """The plain estimate: integer arg-max over the whole frame of the raw correlation k * N (TM_CCORR)."""
-    scores = cv2.matchTemplate(np.asarray(normals, np.float32), kernel.normals, cv2.TM_CCORR)
-    _, _, _, (col, row) = cv2.minMaxLoc(scores)
-    return col + kernel.centre[0], row + kernel.centre[1]

@@ -28,6 +28,7 @@ import numpy as np
 
 from base.errors import InputError
 from data.normals import FLOAT_IMAGE_SUFFIXES, INTEGER_IMAGE_SUFFIXES, decode_normals, read_normal_image, stored_to_unit
+from motion.face.frames import VIDEO_SUFFIXES
 
 DEFAULT_FPS = 30.0               # image folders and .npy stacks carry no frame rate
 MIN_NORM = 0.5                   # decoded vectors shorter than this (grey) are background
@@ -36,7 +37,6 @@ UNIT_TOLERANCE = 0.15            # | |n| - 1 | allowed for a foreground pixel to
 MIN_UNIT_FRACTION = 0.8          # share of foreground pixels that must be unit normals
 MIN_FOREGROUND = 0.02            # share of the frame that must be foreground
 FLOAT_ENCODINGS = ("auto", "raw", "encoded")
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 
 
 def float_is_raw(values: np.ndarray, float_encoding: str) -> bool:

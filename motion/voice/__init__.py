@@ -11,23 +11,8 @@
 Audio decoding and the F0 tracker (Praat through praat-parselmouth) are ``data.audio``'s.
 """
 
-from data.audio import read_audio, track_f0
-from motion.voice.align import check_durations, voice_on_frames
-from motion.voice.config import DEFAULT_SLOPE, TAU_PER_MM, VoiceConfig, load_voice, save_voice
-from motion.voice.term import VoiceTerm, analyse_voice, height_target, voice_height
+from motion.voice.align import voice_on_frames
+from motion.voice.config import VoiceConfig, load_voice
+from motion.voice.term import analyse_voice, height_target
 
-__all__ = [
-    "DEFAULT_SLOPE",
-    "TAU_PER_MM",
-    "VoiceConfig",
-    "VoiceTerm",
-    "analyse_voice",
-    "check_durations",
-    "height_target",
-    "load_voice",
-    "read_audio",
-    "save_voice",
-    "track_f0",
-    "voice_height",
-    "voice_on_frames",
-]
+__all__ = ["VoiceConfig", "analyse_voice", "height_target", "load_voice", "voice_on_frames"]

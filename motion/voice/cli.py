@@ -21,6 +21,9 @@ from omegaconf import DictConfig
 from base.cli import register_config, to_dataclass
 from base.errors import InputError
 from data.pairs import load_pairs
+from models.checkpoint import load_model
+from models.larynx import predict_tau
+from models.pretrained import chosen_checkpoint
 from motion.voice.config import VoiceConfig, save_voice
 from motion.voice.fit import VoiceFit, fit_voice
 
@@ -47,10 +50,6 @@ register_config("voice_schema", VoiceCli)
 def expression_residuals(pairs, checkpoint: str, subject: str | None) -> tuple[list, list[np.ndarray], str | None]:
     """(pairs, tau minus the expression model's tau per pair, the model's label); the pairs resampled to the
     model's rate when there is a model."""
-    from models.checkpoint import load_model
-    from models.larynx import predict_tau
-    from models.pretrained import chosen_checkpoint
-
     path, label = chosen_checkpoint(checkpoint, "larynx_transformer", "checkpoint", "larynx")
     if path is None:
         return pairs, [p.tau for p in pairs], None

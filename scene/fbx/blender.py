@@ -1,4 +1,5 @@
-"""Headless Blender as a tool: find it, run ``blender_side.py`` in it, read what it samples.
+"""Headless Blender as a tool: find it, run ``blender_side.py`` in it (the tests' and benchmarks' sampling of
+an exported file, ``tests/blender_sampling.py``, runs it the same way).
 
 The project has no FBX writer of its own (no open one on PyPI writes skin and blend-shape animation);
 Blender's does.  Blender is found as ``$BLENDER`` or ``blender`` on the PATH; its own Python needs numpy
@@ -9,10 +10,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import tempfile
 from pathlib import Path
-
-import numpy as np
 
 from base.errors import InputError
 
@@ -47,15 +45,3 @@ def run_blender(*arguments: str, purpose: str = "export=[fbx]", timeout: float =
         lines = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
         raise InputError(f"{purpose}: Blender failed ({' '.join(arguments[:2])}): " + " | ".join(lines[-4:]))
     return result.stdout
-
-
-def blender_vertices(path: str | os.PathLike, fps: float, frames) -> dict:
-    """The skinned, shape-keyed mesh Blender makes of the GLB or FBX at ``path`` at each of ``frames``
-    (frame k at time k / fps): ``vertices [F,V,3]`` in Blender's world (metres, z up), ``shape_keys``,
-    ``bones``."""
-    with tempfile.TemporaryDirectory() as folder:
-        out = Path(folder) / "sample.npz"
-        run_blender("sample", str(Path(path).resolve()), str(out), repr(float(fps)),
-                    ",".join(str(int(f)) for f in frames), purpose=f"sampling {path}")
-        with np.load(out) as z:
-            return {key: z[key] for key in z.files}

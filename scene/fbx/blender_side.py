@@ -12,7 +12,7 @@ Maya); ``m`` writes metres with the file's unit scale 1 m.  Axes: y up, the face
 
 ``sample`` imports a GLB or FBX and writes the skinned, shape-keyed mesh at each frame index of
 ``FRAMES`` (comma-separated; frame k at time k / FPS) to an .npz: ``vertices [F,V,3]`` in Blender's world
-(metres, z up), for the project's tests and benchmarks to compare with the rig.
+(metres, z up), for the project's tests and benchmarks to compare with the rig (``tests/blender_sampling.py``).
 
 Blender's Python has numpy but not the project's packages, so this file imports nothing of the project.
 """

@@ -21,7 +21,7 @@ from base.files import atomic_path
 from data.params import AnimationParams
 from models.rig import HeadNeckModel
 from scene.fbx.blender import blender_executable, run_blender
-from scene.gltf import DEFAULT_LARYNX_ERROR_CM, export_glb
+from scene.gltf import DEFAULT_LARYNX_ERROR_CM, build_glb
 
 FBX_UNITS = ("cm", "m")
 
@@ -43,17 +43,17 @@ class FbxReport:
 
 
 def export_fbx(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathLike, units: str = "cm",
-               glb: str | os.PathLike | None = None, take: str = "hackneck", max_influences: int = 8,
+               glb: bytes | str | os.PathLike | None = None, take: str = "hackneck", max_influences: int = 8,
                larynx_error_cm: float = DEFAULT_LARYNX_ERROR_CM) -> FbxReport:
     """Write the clip ``params`` on ``rig`` as ``path`` (.fbx, atomically) through Blender.
 
     Args:
-        params, rig: the clip and the rig it drives (as for ``scene.gltf.export_glb``).
+        params, rig: the clip and the rig it drives (as for ``scene.gltf.build_glb``).
         units: ``cm`` or ``m`` (the FBX's unit scale and the numbers it stores).
-        glb: the clip's GLB when already written (converted as it is), else one is made without morph
-            normals (Blender recomputes normals).
+        glb: the clip's GLB when already built (its bytes, ``scene.gltf.build_glb``, or a written file),
+            converted as it is; None: one is built here without morph normals (Blender recomputes normals).
         take: the take's name.
-        max_influences, larynx_error_cm: for the GLB made here (``scene.gltf.export_glb``).
+        max_influences, larynx_error_cm: for the GLB built here (``scene.gltf.build_glb``).
     Raises:
         BlenderMissing (an InputError) before anything is written when Blender is not installed.
     """
@@ -62,10 +62,13 @@ def export_fbx(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
     blender_executable()
     started = time.perf_counter()
     path = Path(path)
+    if glb is None:
+        glb = build_glb(params, rig, max_influences, larynx_error_cm, check=False, morph_normals=False).raw
     with tempfile.TemporaryDirectory() as folder:
-        if glb is None:
-            glb = Path(folder) / "clip.glb"
-            export_glb(params, rig, glb, max_influences, larynx_error_cm, check=False, morph_normals=False)
+        if isinstance(glb, (bytes, bytearray)):   # Blender reads files: the bytes go to a scratch file
+            scratch = Path(folder) / "clip.glb"
+            scratch.write_bytes(glb)
+            glb = scratch
         with atomic_path(path) as tmp:
             run_blender("convert", str(Path(glb).resolve()), str(tmp.resolve()), repr(float(params.fps)), units,
                         take)

@@ -9,9 +9,9 @@ import numpy as np
 import torch
 
 from base.errors import InputError
-from base.rotations import axis_angle_to_matrix, matrix_to_quaternion
+from base.rotations import axis_angle_to_matrix, matrix_to_quaternion, quaternion_to_matrix
 from data.params import AnimationParams, check_rig
-from models.rig import HeadNeckModel
+from models.rig import HeadNeckModel, forward_kinematics, linear_blend_skinning, skinning_transforms
 from scene.characters import person_rig
 from scene.gltf.mesh import METRES_PER_CM, Influences, SeamSplit, shape_normals, skin_influences, split_uv_seams
 from scene.gltf.morphs import (
@@ -27,45 +27,24 @@ ZERO_DELTA_CM = 1e-6
 ZERO_NORMAL_DELTA = 1e-5       # likewise for a change of a unit normal
 
 
-def local_rotations(rig: HeadNeckModel, theta: np.ndarray) -> np.ndarray:
+def joint_rotations(theta: np.ndarray) -> np.ndarray:
+    """theta [T,J,3] (axis-angle, bone frames) -> rotation matrices [T,J,3,3] float64."""
+    return axis_angle_to_matrix(torch.as_tensor(np.asarray(theta, np.float64))).numpy()
+
+
+def local_rotations(rig: HeadNeckModel, rotations: np.ndarray) -> np.ndarray:
     """Each joint node's local rotation per frame as glTF quaternions (x, y, z, w) [T,J,4] float32: the
-    rest rotation relative to the parent times the rotation of theta [T,J,3]; unit length, and each
-    joint's track kept on one hemisphere (q and -q are the same rotation; glTF interpolates between
-    neighbours)."""
+    rest rotation relative to the parent times the joint's rotation [T,J,3,3] (:func:`joint_rotations`);
+    unit length, and each joint's track kept on one hemisphere (q and -q are the same rotation; glTF
+    interpolates between neighbours)."""
     rest = torch.as_tensor(np.asarray(rig.rig.joint_rest_local, np.float64)[:, :3, :3])
-    rotations = axis_angle_to_matrix(torch.as_tensor(np.asarray(theta, np.float64)))
-    wxyz = matrix_to_quaternion(rest[None] @ rotations).numpy()
+    wxyz = matrix_to_quaternion(rest[None] @ torch.as_tensor(rotations, dtype=torch.float64)).numpy()
     xyzw = wxyz[..., [1, 2, 3, 0]]
     for t in range(1, len(xyzw)):
         flip = (xyzw[t] * xyzw[t - 1]).sum(-1) < 0
         xyzw[t, flip] *= -1.0
     xyzw = xyzw / np.linalg.norm(xyzw, axis=-1, keepdims=True)
     return xyzw.astype(np.float32)
-
-
-def quaternion_matrices(xyzw: np.ndarray) -> np.ndarray:
-    """glTF quaternions (x, y, z, w) [...,4] -> rotation matrices [...,3,3] (float64)."""
-    q = np.asarray(xyzw, np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
-def node_world_matrices(translations: np.ndarray, rotations: np.ndarray, parents) -> np.ndarray:
-    """World matrices [...,J,4,4] of a joint chain from local translations [J,3] and rotation matrices
-    [...,J,3,3] (parents precede children; -1 = under the identity root)."""
-    local = np.zeros(rotations.shape[:-2] + (4, 4))
-    local[..., :3, :3] = rotations
-    local[..., :3, 3] = translations
-    local[..., 3, 3] = 1.0
-    world = np.empty_like(local)
-    for j, parent in enumerate(parents):
-        world[..., j, :, :] = local[..., j, :, :] if parent < 0 else world[..., parent, :, :] @ local[..., j, :, :]
-    return world
 
 
 @dataclass
@@ -141,45 +120,41 @@ def export_data(params: AnimationParams, rig: HeadNeckModel, max_influences: int
         normal_targets = np.zeros((0, len(template), 3))
     names = ([str(n) for n in data.expression_names] + [f"larynx_tau{t:+.5f}" for t in larynx.taus]
              + [f"corrective_{data.joint_names[f // 9]}_r{(f % 9) // 3}c{f % 3}" for f in features])
-    with torch.no_grad():
-        rotation_matrices = axis_angle_to_matrix(torch.as_tensor(params.theta, dtype=torch.float32)).double().numpy()
+    rotations = joint_rotations(params.theta)
     weights = np.concatenate([np.asarray(params.psi, np.float64), larynx.weights(params.tau, params.eta),
-                              corrective_weights(rotation_matrices, features)], axis=1)
+                              corrective_weights(rotations, features)], axis=1)
 
-    rotations = local_rotations(rig, params.theta)
     translations = (np.asarray(data.joint_rest_local, np.float64)[:, :3, 3] * METRES_PER_CM).astype(np.float32)
-    rest_rotations = quaternion_matrices(local_rotations(rig, np.zeros((1,) + params.theta.shape[1:]))[0])
-    rest_world = node_world_matrices(translations.astype(np.float64), rest_rotations, rig.parents)
-    inverse_bind = np.linalg.inv(rest_world)
+    inverse_bind = rig.rest_world_inverse.double().numpy()      # G_j(0)^-1, the rig's; glTF's metres below
+    inverse_bind[:, :3, 3] *= METRES_PER_CM
     inverse_bind[:, 3] = (0.0, 0.0, 0.0, 1.0)
     export = ExportData(
         positions=(template[index] * METRES_PER_CM).astype(np.float32), normals=normals[index].astype(np.float32),
         targets=(deltas[:, index] * METRES_PER_CM).astype(np.float32),
         normal_targets=normal_targets[:, index].astype(np.float32), target_names=names,
         morph_weights=weights.astype(np.float32),
-        rotations=rotations, translations=translations, inverse_bind=inverse_bind.astype(np.float32),
+        rotations=local_rotations(rig, rotations), translations=translations,
+        inverse_bind=inverse_bind.astype(np.float32),
         joints=influences.joints[index], weights=influences.weights[index], times=times, split=split)
     return export, influences, larynx, features
 
 
 def evaluate_export(export: ExportData, parents, frames: np.ndarray | None = None) -> np.ndarray:
-    """Posed glTF vertices [T',V,3] in metres from the stored arrays (morphs, then skin), float64.
-    frames: indices into the clip (default all)."""
+    """Posed glTF vertices [T',V,3] in metres from the stored arrays (morphs, then the skin through the rig's
+    forward kinematics and linear blend skinning, ``models.rig.skinning``), float64.  frames: indices into
+    the clip (default all)."""
     frames = np.arange(len(export.times)) if frames is None else np.asarray(frames)
-    targets = export.targets.astype(np.float64).reshape(len(export.targets), -1)
-    rest = export.positions[None].astype(np.float64) + (export.morph_weights[frames].astype(np.float64) @ targets) \
-        .reshape(len(frames), -1, 3)
-    world = node_world_matrices(export.translations.astype(np.float64),
-                                quaternion_matrices(export.rotations[frames]), parents)
-    joint_matrices = world @ export.inverse_bind.astype(np.float64)                       # [T,J,4,4]
+    targets = torch.as_tensor(export.targets, dtype=torch.float64).reshape(len(export.targets), -1)
+    weights = torch.as_tensor(export.morph_weights[frames], dtype=torch.float64)
+    rest = torch.as_tensor(export.positions, dtype=torch.float64) + (weights @ targets).reshape(len(frames), -1, 3)
+    xyzw = torch.as_tensor(export.rotations[frames], dtype=torch.float64)
+    node_local = torch.eye(4, dtype=torch.float64).repeat(len(export.translations), 1, 1)
+    node_local[:, :3, 3] = torch.as_tensor(export.translations, dtype=torch.float64)
+    world = forward_kinematics(quaternion_to_matrix(xyzw[..., [3, 0, 1, 2]]), node_local, parents)
+    transforms = skinning_transforms(world, torch.as_tensor(export.inverse_bind, dtype=torch.float64))
     dense = np.zeros((len(export.positions), len(export.translations)))   # [V,J] weights, the slots summed
-    rows = np.arange(len(export.positions))
-    for slot in range(export.weights.shape[1]):
-        np.add.at(dense, (rows, export.joints[:, slot]), export.weights[:, slot].astype(np.float64))
-    by_joint = joint_matrices[:, :, :3, :].transpose(1, 0, 2, 3).reshape(len(export.translations), -1)
-    blended = (dense @ by_joint).reshape(len(export.positions), len(frames), 3, 4).transpose(1, 0, 2, 3)
-    return blended[..., 3] + blended[..., 0] * rest[..., 0:1] + blended[..., 1] * rest[..., 1:2] \
-        + blended[..., 2] * rest[..., 2:3]
+    np.add.at(dense, (np.arange(len(dense))[:, None], export.joints), export.weights.astype(np.float64))
+    return linear_blend_skinning(rest, torch.as_tensor(dense), transforms).numpy()
 
 
 def rig_vertices(rig: HeadNeckModel, params: AnimationParams, frames: np.ndarray | None = None) -> np.ndarray:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import os
 import time as timer
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +17,7 @@ from data.params import AnimationParams
 from models.rig import HeadNeckModel
 from scene.characters import person_rig
 from scene.gltf.clip import ExportData, export_data, export_error_cm
-from scene.gltf.morphs import DEFAULT_LARYNX_ERROR_CM
+from scene.gltf.morphs import DEFAULT_LARYNX_ERROR_CM, LarynxTargets
 
 SKIN_COLOUR = [0.80, 0.62, 0.52, 1.0]
 
@@ -26,10 +26,11 @@ SKIN_COLOUR = [0.80, 0.62, 0.52, 1.0]
 class ExportReport:
     """What an export wrote and how faithful it is.
 
-    path; vertices (glTF) / rig_vertices; triangles; frames; fps; influences (per vertex in the file) and
-    truncated (vertices that lost weight); expression_targets, larynx_targets, corrective_targets;
-    tau_range (low, high); larynx_error_cm (the interpolation bound); max_error_cm: the largest vertex
-    error over all frames of the file's own data (skin + morphs, float32) against the rig's forward pass
+    path (None until written, :func:`write_glb`); vertices (glTF) / rig_vertices; triangles; frames; fps;
+    influences (per vertex in the file) and truncated (vertices that lost weight); expression_targets,
+    larynx_targets, corrective_targets; tau_range (low, high); larynx_error_cm (the interpolation bound);
+    max_error_cm: the largest vertex error over all frames of the file's own data (skin + morphs, float32)
+    against the rig's forward pass
     (None if not checked); bytes; seconds.
     """
 
@@ -200,11 +201,30 @@ def build_gltf(export: ExportData, rig: HeadNeckModel, params: AnimationParams, 
     return gltf
 
 
-def export_glb(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathLike | None,
-               max_influences: int = 8, larynx_error_cm: float = DEFAULT_LARYNX_ERROR_CM, check: bool = True,
-               source: str = "params", morph_normals: bool = True) -> ExportReport:
-    """Write the clip ``params`` on ``rig`` as one animated ``.glb`` at ``path`` (atomically; None: build
-    only, for timing).
+def gltf_extras(params: AnimationParams, larynx: LarynxTargets) -> dict:
+    """The file's ``asset.extras``: units and axes, the clip's rate, its rig and producers (JSON with sorted
+    keys, as ``params.npz`` stores them: the same file from the params in memory or read back), the larynx
+    nodes."""
+    return {"units": "metre", "source_units": "cm", "up": "+y", "forward": "+z", "fps": float(params.fps),
+            "rig": params.rig, "rig_checksum": params.rig_checksum,
+            "producers": json.dumps(params.producers, sort_keys=True),
+            "larynx_taus": [float(t) for t in larynx.taus]}
+
+
+@dataclass
+class Glb:
+    """One clip's binary glTF, built in memory (:func:`build_glb`): ``raw`` the file's bytes, ``report`` what
+    it holds (``path`` None until :func:`write_glb`)."""
+
+    raw: bytes
+    report: ExportReport
+
+
+def build_glb(params: AnimationParams, rig: HeadNeckModel, max_influences: int = 8,
+              larynx_error_cm: float = DEFAULT_LARYNX_ERROR_CM, check: bool = True, source: str = "params",
+              morph_normals: bool = True) -> Glb:
+    """The clip ``params`` on ``rig`` as one animated binary glTF, in memory: what :func:`export_glb`
+    writes, and what the viewer page embeds and Blender converts to FBX (built once per take).
 
     Args:
         params: the per-frame inputs (``data.params.AnimationParams``) in the rig's bone frames.
@@ -217,23 +237,13 @@ def export_glb(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
         source: how to name the params in error messages (their file).
         morph_normals: store each morph target's change of the normals (for viewers' shading; about
             doubles the file; Blender recomputes normals and ignores them).
-    Returns:
-        ExportReport (``summary()`` prints it).
     """
     started = timer.perf_counter()
     export, influences, larynx, features = export_data(params, rig, max_influences, larynx_error_cm, source,
                                                        morph_normals)
-    extras = {"units": "metre", "source_units": "cm", "up": "+y", "forward": "+z", "fps": float(params.fps),
-              "rig": params.rig, "rig_checksum": params.rig_checksum, "producers": json.dumps(params.producers),
-              "larynx_taus": [float(t) for t in larynx.taus]}
-    gltf = build_gltf(export, rig, params, extras)
-    raw = b"".join(gltf.save_to_bytes())
-    if path is not None:
-        path = Path(path)
-        with atomic_path(path) as tmp:
-            tmp.write_bytes(raw)
+    raw = b"".join(build_gltf(export, rig, params, gltf_extras(params, larynx)).save_to_bytes())
     report = ExportReport(
-        path=path, vertices=len(export.positions), rig_vertices=rig.num_vertices,
+        path=None, vertices=len(export.positions), rig_vertices=rig.num_vertices,
         triangles=len(export.split.triangles), frames=len(params), fps=float(params.fps),
         influences=export.joints.shape[1], truncated=influences.truncated,
         expression_targets=len(rig.expression_names), larynx_targets=len(larynx.taus),
@@ -242,4 +252,21 @@ def export_glb(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
     report.seconds = timer.perf_counter() - started
     if check or influences.truncated:  # dropping influences always reports what it costs
         report.max_error_cm = export_error_cm(export, person_rig(rig, params, source), params)
-    return report
+    return Glb(raw, report)
+
+
+def write_glb(glb: Glb, path: str | os.PathLike) -> ExportReport:
+    """Write ``glb`` at ``path`` (atomically); its report, with the path and the seconds writing took added."""
+    started = timer.perf_counter()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(glb.raw)
+    return replace(glb.report, path=path, seconds=glb.report.seconds + timer.perf_counter() - started)
+
+
+def export_glb(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathLike, max_influences: int = 8,
+               larynx_error_cm: float = DEFAULT_LARYNX_ERROR_CM, check: bool = True, source: str = "params",
+               morph_normals: bool = True) -> ExportReport:
+    """Write the clip ``params`` on ``rig`` as one animated ``.glb`` at ``path`` (atomically): :func:`build_glb`
+    (its arguments) then :func:`write_glb`.  Returns the ExportReport (``summary()`` prints it)."""
+    return write_glb(build_glb(params, rig, max_influences, larynx_error_cm, check, source, morph_normals), path)

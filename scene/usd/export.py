@@ -21,6 +21,7 @@ from base.files import atomic_path
 from data.params import AnimationParams
 from models.rig import HeadNeckModel
 from scene.gltf import METRES_PER_CM, export_data, export_error_cm
+from scene.usd.stage import build_stage
 from scene.usd.weights import within_unit_weights
 
 USD_FORMATS = ("usdc", "usda", "usdz")
@@ -146,7 +147,6 @@ def export_usd(params: AnimationParams, rig: HeadNeckModel, path: str | os.PathL
     # this file once export_data applies it for the GLB; nothing here reads the rig's template itself.
     export, influences, larynx, features = export_data(params, rig, max_influences, larynx_error_cm, source,
                                                        morph_normals)
-    from scene.usd.stage import build_stage
 
     plain_targets = len(export.target_names)
     export, larynx_scale = within_unit_weights(export, len(rig.expression_names), len(larynx.taus))

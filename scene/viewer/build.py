@@ -21,7 +21,7 @@ import numpy as np
 from base.files import atomic_path
 from data.params import AnimationParams, load_params
 from models.rig import HeadNeckModel
-from scene.gltf import build_gltf, export_data, local_rotations, resolve_rig
+from scene.gltf import build_glb, local_rotations, resolve_rig
 
 HERE = Path(__file__).resolve().parent
 VENDOR = HERE / "vendor"
@@ -46,13 +46,9 @@ class ViewerReport:
 
 
 def glb_bytes(params: AnimationParams, rig: HeadNeckModel, source: str = "params") -> bytes:
-    """The binary glTF of the clip as :func:`scene.gltf.export_glb` writes it (built in memory; the params'
-    ``shape_offset`` applied to the base ``rig``, ``export_data``)."""
-    export, _, larynx, _ = export_data(params, rig, source=source)
-    extras = {"units": "metre", "source_units": "cm", "up": "+y", "forward": "+z", "fps": float(params.fps),
-              "rig": params.rig, "rig_checksum": params.rig_checksum, "producers": json.dumps(params.producers),
-              "larynx_taus": [float(t) for t in larynx.taus]}
-    return b"".join(build_gltf(export, rig, params, extras).save_to_bytes())
+    """The binary glTF of the clip as :func:`scene.gltf.export_glb` writes it, built in memory
+    (:func:`scene.gltf.build_glb`; the params' ``shape_offset`` applied to the base ``rig``)."""
+    return build_glb(params, rig, check=False, source=source).raw
 
 
 def _b64(array: np.ndarray, dtype) -> str:
@@ -63,7 +59,7 @@ def _b64(array: np.ndarray, dtype) -> str:
 def clip_header(params: AnimationParams, rig: HeadNeckModel, title: str = "") -> dict:
     """What the page needs besides the GLB: names, rest rotations, and the clip's frames (little-endian
     base64: time float64 [T], theta float32 [T*J*3], psi float32 [T*E], tau, eta float32 [T])."""
-    rest = local_rotations(rig, np.zeros((1, rig.num_joints, 3)))[0].astype(np.float64)
+    rest = local_rotations(rig, np.eye(3)[None, None].repeat(rig.num_joints, axis=1))[0].astype(np.float64)
     return {
         "title": title, "fps": float(params.fps), "frames": len(params),
         "joints": list(params.joint_names), "expressions": list(params.expression_names),

@@ -1,6 +1,6 @@
-"""Face video with known answers: the ICT-FaceKit head rendered as a shaded RGB image.
+"""Face video with known answers, for the face stage's tests and benchmark: the ICT-FaceKit head rendered as a
+shaded RGB image (``tests/test_face_video.py``, ``benchmarks/bench_face_video.py``).
 
-For the face stage's tests and benchmark (``tests/test_face_video.py``, ``benchmarks/bench_face_video.py``):
 :class:`FaceHead` reads ICT-FaceKit's ``FaceXModel`` (the neutral mesh and the expression OBJs it is asked
 for; never copied, read where it lies) and renders it with given expression weights and head rotation.
 
@@ -19,9 +19,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
+from base.rotations import ypr_to_matrix
 from data.expressions import EXPRESSION_NAMES
 from data.mesh_io import read_obj
 from scene.render import Camera, rasterize, vertex_normals
@@ -133,8 +135,6 @@ class FaceHead:
 
 def write_video(path: str | Path, frames, fps: float, fourcc: str = "mp4v") -> Path:
     """RGB uint8 frames [H,W,3] (an iterable) into a video file at ``fps`` (OpenCV's writer, ``fourcc``)."""
-    import cv2
-
     path = Path(path)
     writer = None
     try:
@@ -173,8 +173,6 @@ def known_motion(count: int, fps: float, yaw_degrees: float = 20.0,
 def render_known_motion(head: FaceHead, motion: dict[str, np.ndarray], noise: float = 0.0, seed: int = 0):
     """Frames (RGB uint8) of ``head`` following :func:`known_motion`, with Gaussian sensor noise of standard
     deviation ``noise`` (in 0-255 levels); the head needs jawOpen, eyeBlink_L/R and mouthPucker."""
-    from base.rotations import ypr_to_matrix
-
     rng = np.random.default_rng(seed)
     ypr = np.stack([motion["yaw"], motion["pitch"], np.zeros_like(motion["yaw"])], axis=1)
     rotations = ypr_to_matrix(torch.tensor(ypr, dtype=torch.float32)).numpy()

@@ -1,4 +1,5 @@
-"""The five-landmark swallow baseline: a simple registration that templates from our own are measured against.
+"""The five-landmark swallow baseline: a simple registration that templates from our own are measured against
+(``bench_swallow_registration.py``, ``tests/test_swallow_register.py``).
 
 Per clip: rest is the line through the medians of the first and last 0.3 s; the landmarks are the
 maximum of the lightly smoothed curve and its 10% and 50% crossings either side; the curves are
