@@ -2,13 +2,13 @@
 
 Composes and checks the config, then trains (``tasks.members.train``: one network through the task-agnostic
 loop, ``tasks.loop.fit``, or an ensemble's members); ``tasks/<name>`` supplies the model, batches, losses and
-evaluation.  Each run writes to its hydra run
-directory (``runs/<task>/<timestamp>`` unless ``hydra.run.dir=...``; ``-m`` sweeps write
-``multirun/<task>/<timestamp>/<job number>``): ``checkpoints/last.pt`` and ``best.pt``, ``metrics.csv``,
-``eval.json`` (``tasks.run_folder``); ``resume=true`` with the same ``hydra.run.dir`` continues a run.
+evaluation.  Each run writes to its hydra run directory (``runs/<task>/<timestamp>`` unless
+``hydra.run.dir=...``; ``-m`` sweeps write ``multirun/<task>/<timestamp>/<job number>``): ``checkpoints/last.pt``
+and ``best.pt``, ``metrics.csv``, ``eval.json`` (``tasks.run_folder``); ``resume=true`` with the same
+``hydra.run.dir`` continues a run.
 The same config gives the same weights, resumed or not (``tasks.loop``).  Several processes
-(``torchrun --nproc_per_node=N train.py ...``) train on slices of the same batches
-(``tasks.distributed``).
+(``torchrun --nproc_per_node=N train.py ...``) train on slices of the same batches (``tasks.distributed``), or
+split an ensemble's members (``tasks.members``; ``trainer.member_workers=N`` on one machine).
 """
 from __future__ import annotations
 
