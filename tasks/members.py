@@ -156,7 +156,7 @@ def run_members(cfg: DictConfig, folders: dict[int, Path], data, refits: bool, r
     workers = min(int(cfg.trainer.member_workers), len(folders))
     if workers > 1:
         pool = ProcessPoolExecutor(workers, mp_context=get_context(START_METHOD), initializer=start_worker,
-                                   initargs=(data, int(cfg.trainer.threads)))
+                                   initargs=(data, int(cfg.trainer.threads), ranks))
         cfg = copy.deepcopy(cfg)
         cfg.trainer.progress = False  # several bars on one terminal
     else:
@@ -194,9 +194,9 @@ def run_members(cfg: DictConfig, folders: dict[int, Path], data, refits: bool, r
 WORKER: dict = {}
 
 
-def start_worker(data, threads: int) -> None:
+def start_worker(data, threads: int, ranks: Ranks) -> None:
     torch.set_num_threads(threads)
-    WORKER.update(data=data, ranks=Ranks())
+    WORKER.update(data=data, ranks=ranks)
 
 
 def fit_in_worker(cfg: DictConfig, folder: Path) -> dict:
