@@ -1,13 +1,14 @@
 """Training entry point: ``python train.py task=<larynx_transformer|head2neck> [overrides]``.
 
-Composes and checks the config, then trains (``tasks.loop.fit``): the loop is task-agnostic, and
-``tasks/<name>.py`` supplies the model, batches, losses and evaluation.  Each run writes to its hydra run
-directory (``runs/<task>/<timestamp>`` unless ``hydra.run.dir=...``; ``-m`` sweeps write
-``multirun/<task>/<timestamp>/<job number>``): ``checkpoints/last.pt`` and ``best.pt``, ``metrics.csv``,
-``eval.json`` (``tasks.run_folder``); ``resume=true`` with the same ``hydra.run.dir`` continues a run.
+Composes and checks the config, then trains (``tasks.members.train``: one network through the task-agnostic
+loop, ``tasks.loop.fit``, or an ensemble's members); ``tasks/<name>`` supplies the model, batches, losses and
+evaluation.  Each run writes to its hydra run directory (``runs/<task>/<timestamp>`` unless
+``hydra.run.dir=...``; ``-m`` sweeps write ``multirun/<task>/<timestamp>/<job number>``): ``checkpoints/last.pt``
+and ``best.pt``, ``metrics.csv``, ``eval.json`` (``tasks.run_folder``); ``resume=true`` with the same
+``hydra.run.dir`` continues a run.
 The same config gives the same weights, resumed or not (``tasks.loop``).  Several processes
-(``torchrun --nproc_per_node=N train.py ...``) train on slices of the same batches
-(``tasks.distributed``).
+(``torchrun --nproc_per_node=N train.py ...``) train on slices of the same batches (``tasks.distributed``), or
+split an ensemble's members (``tasks.members``; ``trainer.member_workers=N`` on one machine).
 """
 from __future__ import annotations
 
@@ -18,30 +19,53 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
 from omegaconf import DictConfig
+from omegaconf.errors import OmegaConfBaseException
 
-from base.cli import compose_config, to_dataclass
+from base.cli import config_error, missing_keys, to_dataclass
 from base.errors import InputError
-from tasks.loop import fit
+from tasks.members import train
 from tasks.run_folder import discard_unstarted_run
 
 
-@hydra.main(version_base=None, config_path="configs", config_name="train")
+@hydra.main(version_base=None, config_path=str(Path(__file__).resolve().parent / "configs"), config_name="train")
 def main(cfg: DictConfig) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        fit(cfg, run_dir)
-    except InputError as e:  # bad data or a refused resume: the message, status 2, no traceback (base.cli)
+        check_config(cfg)
+        train(cfg, run_dir)
+    except InputError as e:  # bad settings or data, a refused resume: the message, status 2, no traceback (base.cli)
         print(f"error: {e}", file=sys.stderr)
         if not cfg.resume:
             discard_unstarted_run(run_dir)
         sys.exit(2)
 
 
+def run(argv: list[str]) -> None:
+    """``python train.py <argv>``: hydra composes the config once and runs it (``main``); what it cannot compose
+    (an unknown key, a wrong type) is one line and exit status 2, as what ``check_config`` refuses."""
+    check_command_line(argv)
+    sys.argv[1:] = rank_arguments(argv)
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # hydra raises what it cannot compose rather than printing a report
+    try:
+        main()
+    except (HydraException, OmegaConfBaseException) as e:
+        print(f"error: {config_error(e)}", file=sys.stderr)
+        sys.exit(2)
+
+
+def check_config(cfg: DictConfig) -> None:
+    """InputError naming the settings still missing (``???``) or that the trainer's schema refuses."""
+    missing = missing_keys(cfg)
+    if missing:
+        raise InputError(f"missing {', '.join(f'{k}=...' for k in missing)} (see configs/train.yaml)")
+    to_dataclass(cfg.trainer, where="trainer")
+
+
 def check_command_line(argv: list[str]) -> None:
-    """Compose the config once before hydra runs it, so an unknown key, a wrong type or a missing value is
-    one line and exit status 2 (base.cli) rather than hydra's report.  Sweeps (``-m``) and hydra's own
-    flags and keys are left to hydra; a sweep under torchrun is refused."""
+    """Refuse, in one line with exit status 2, a sweep (``-m``) under torchrun and the SLURM launcher without its
+    plugin."""
     if int(os.environ.get("WORLD_SIZE", 1)) > 1 and any(arg in ("-m", "--multirun") for arg in argv):
         print("error: -m (a hydra sweep) under torchrun: run one torchrun per sweep job, or sweep with the "
               "submitit launcher (hydra/launcher=slurm)", file=sys.stderr)
@@ -49,14 +73,6 @@ def check_command_line(argv: list[str]) -> None:
     if "hydra/launcher=slurm" in argv and not has_module("hydra_plugins.hydra_submitit_launcher"):
         print("error: hydra/launcher=slurm needs the hydra submitit launcher: pip install \".[slurm]\"",
               file=sys.stderr)
-        sys.exit(2)
-    if any(arg.startswith("-") for arg in argv):
-        return
-    try:
-        cfg = compose_config("train", [arg for arg in argv if not arg.startswith(("hydra.", "hydra/", "+hydra"))])
-        to_dataclass(cfg.trainer, where="trainer")
-    except InputError as e:
-        print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
 
 
@@ -78,6 +94,4 @@ def rank_arguments(argv: list[str]) -> list[str]:
 
 
 if __name__ == "__main__":
-    check_command_line(sys.argv[1:])
-    sys.argv[1:] = rank_arguments(sys.argv[1:])
-    main()
+    run(sys.argv[1:])

@@ -13,7 +13,7 @@ dataclass is the schema and holds the defaults; ``configs/<tool>.yaml`` composes
 
 The tools compose with hydra's compose API: they write no hydra run directory or logs, and relative
 paths are relative to where you run.  ``train.py`` runs under ``hydra.main`` (run directories,
-multirun) and uses :func:`compose_config` to validate the command line first.
+multirun) and reports what hydra cannot compose with :func:`config_error`.
 """
 from __future__ import annotations
 

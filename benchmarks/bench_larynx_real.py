@@ -83,7 +83,8 @@ from data.pairs import LarynxSequence, save_pair  # noqa: E402
 from models.checkpoint import load_model  # noqa: E402
 from models.larynx import predict_tau  # noqa: E402
 from tasks.larynx_transformer import Task, fit_ridge, rmse, window_features  # noqa: E402
-from tasks.loop import fit, lr_factor, step_seeds  # noqa: E402
+from tasks.loop import lr_factor, step_seeds  # noqa: E402
+from tasks.members import train  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -201,13 +202,13 @@ TRAINER = ["trainer.checkpoint_every=100000", "trainer.progress=false", "trainer
 
 def train_default(folder: Path, run_dir: Path, seed: int, extra: list[str] = ()) -> tuple[Path, dict, Task]:
     """``python train.py task=larynx_transformer data=pairs data.path=<folder> seed=<seed>``, in-process
-    (trainer.max_steps null by default: the task's choice for these data, Task.max_steps).  Returns (the
+    (trainer.max_steps null by default: the task's choice for these data, Task.steps_for_data).  Returns (the
     checkpoint of the weights the final evaluation used, eval.json, the task)."""
     overrides = ["task=larynx_transformer", "data=pairs", f"data.path={folder}", f"seed={seed}", *TRAINER, *extra]
     cfg = compose_config("train", overrides)
     task = Task(cfg)
     shutil.rmtree(run_dir, ignore_errors=True)
-    evaluation = fit(cfg, run_dir)
+    evaluation = train(cfg, run_dir)
     best = run_dir / "checkpoints" / "best.pt"
     return (best if best.is_file() else run_dir / "checkpoints" / "last.pt"), evaluation, task
 

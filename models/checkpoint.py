@@ -61,8 +61,6 @@ def load_model(path: str | os.PathLike, task: str | None = None) -> tuple[nn.Mod
                          f"{', '.join(MODEL_BUILDERS)}")
     try:
         model = MODEL_BUILDERS[state["task"]](state["model_config"])
-    except larynx.RemovedOptionError as e:
-        raise InputError(f"{path}: checkpoint {e}") from None
     except ValueError as e:
         raise InputError(f"{path}: checkpoint written by an incompatible version of the code: its model_config "
                          f"does not build ({e})") from None

@@ -1,5 +1,8 @@
-"""Training tasks: the registry of tasks and the train config.  ``tasks.loop`` owns the loop; a task owns
-its model, data and losses.
+"""Training tasks: the train config and the task of a name.  ``tasks.members`` drives a run (one network, or
+an ensemble's members), ``tasks.loop`` trains one network; a task owns its model, data and losses.
+
+The tasks are the names of ``models.checkpoint.MODEL_BUILDERS`` (what rebuilds each task's model from a
+checkpoint), each a package or module ``tasks.<name>`` (:func:`task_module`).
 
 A task module defines ``Task(cfg)`` with:
 - ``model``: the ``nn.Module`` being trained;
@@ -12,6 +15,9 @@ A task module defines ``Task(cfg)`` with:
 and a module function ``build_model(model_config) -> nn.Module``.
 
 Optional:
+- a module function ``load_data(cfg)``: the data a run loads once and its ensemble's members share (passed as
+  ``Task(cfg, data)``; ``Task(cfg)`` loads its own), and the ensemble functions of ``tasks.members``;
+- ``total_steps``: how many steps the task chooses for its data when ``trainer.max_steps`` is null;
 - ``evaluate`` may return ``val_loss`` (lower is better): the loop then keeps ``checkpoints/best.pt``
   and can stop early and evaluate the best weights (:class:`TrainerConfig`);
 - ``split_batch(batch, rank, world) -> batch``: this rank's share of the global batch under
@@ -29,7 +35,7 @@ over the slice's samples, so that the ranks' averaged gradients are the gradient
 """
 from __future__ import annotations
 
-import importlib
+import sys
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -37,11 +43,7 @@ import torch
 from torch import nn
 
 from base.cli import REQUIRED, register_config
-
-TASKS = {
-    "larynx_transformer": "tasks.larynx_transformer",
-    "head2neck": "tasks.head2neck",
-}
+from models.checkpoint import MODEL_BUILDERS
 
 
 @dataclass
@@ -69,6 +71,8 @@ class TrainerConfig:
     - ``amp``: mixed precision on CUDA (float16 autocast around the loss, a gradient scaler whose state
       is checkpointed); refused on the CPU.
     - ``threads``: torch threads per process.
+    - ``member_workers``: processes training an ensemble's members side by side on this machine
+      (``tasks.members``; 1: one after another in this process).  The results are the same bit for bit.
 
     Validation, early stopping and the best checkpoint: validation runs every ``eval_every`` steps
     (``task.evaluate()``, logged as ``val`` rows) except at the last step, which the final evaluation
@@ -94,6 +98,7 @@ class TrainerConfig:
     # One thread: the models are small, and on a CPU shared with other processes a second OpenMP thread
     # stalls every parallel region (measured: 0.17 s/step on 1 thread, 0.9 s/step on 2).
     threads: int = 1
+    member_workers: int = 1           # processes training an ensemble's members at once (tasks.members)
     progress: bool = True
     device: str = "auto"              # auto | cpu | cuda
     amp: bool = False                 # mixed precision (CUDA only)
@@ -113,7 +118,7 @@ class TrainerConfig:
         # it itself, or kept a shipped model: tasks/head2neck.py).
         if self.max_steps is not None and self.max_steps < 0:
             raise ValueError(f"max_steps is {self.max_steps}, expected at least 0")
-        for name in ("log_every", "checkpoint_every"):
+        for name in ("log_every", "checkpoint_every", "member_workers"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"{name} is {getattr(self, name)}, expected at least 1")
 
@@ -150,13 +155,16 @@ class Task(Protocol):
 
 
 def task_module(name: str):
-    if name not in TASKS:
-        raise ValueError(f"unknown task '{name}', expected one of {', '.join(TASKS)}")
-    return importlib.import_module(TASKS[name])
+    """The module of task ``name`` (``tasks.<name>``, imported below)."""
+    if name not in MODEL_BUILDERS:
+        raise ValueError(f"unknown task '{name}', expected one of {', '.join(MODEL_BUILDERS)}")
+    return sys.modules[f"{__name__}.{name}"]
 
 
-def build(cfg) -> Task:
-    return task_module(cfg.task.name).Task(cfg)
+def build(cfg, data=None) -> Task:
+    """The task of ``cfg``, on ``data`` (its module's ``load_data(cfg)``, shared by a run's members) when given."""
+    module = task_module(cfg.task.name)
+    return module.Task(cfg) if data is None else module.Task(cfg, data)
 
 
 # The task modules register their own config schemas (the task, model and data groups) on import.

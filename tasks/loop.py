@@ -1,4 +1,5 @@
-"""The training loop: train a task (``tasks/<name>.py``) for ``trainer.max_steps`` steps in a run folder.
+"""The training loop: train one network of a task (``tasks/<name>``) for ``trainer.max_steps`` steps in a run
+folder (an ensemble's members are runs of it, ``tasks.members``).
 
 :func:`fit` trains, validates, checkpoints and evaluates; the files it writes, and how a run resumes,
 are ``tasks.run_folder``'s; validation's record and early stopping ``tasks.validation``'s; training on
@@ -44,7 +45,6 @@ from tasks.distributed import (
     split_batch,
     to_device,
 )
-from tasks.members import fit_members, trains_members
 from tasks.run_folder import MetricsLog, RunFolder
 from tasks.validation import Validation
 
@@ -72,14 +72,12 @@ def lr_factor(step: int, warmup: int, total: int, min_factor: float) -> float:
     return min_factor + (1 - min_factor) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
-    """Train the task of ``cfg`` in ``run_dir``; returns the final evaluation (on rank 0; ``{}`` on the
-    other ranks and when ``trainer.stop_after`` ends the run).  A task of several members trains each in turn
-    (``tasks.members``)."""
-    if trains_members(cfg):
-        return fit_members(cfg, run_dir, fit)
+def fit(cfg: DictConfig, run_dir: Path, data=None, ranks: Ranks | None = None) -> dict[str, float]:
+    """Train the network of ``cfg`` in ``run_dir`` on ``data`` (the task module's ``load_data(cfg)``; None: the
+    task loads its own) among ``ranks`` (None: the processes torchrun launched); returns the final evaluation (on
+    rank 0; ``{}`` on the other ranks and when ``trainer.stop_after`` ends the run)."""
     trainer = to_dataclass(cfg.trainer, where="trainer")
-    ranks = launched_ranks()
+    ranks = launched_ranks() if ranks is None else ranks
     if trainer.threads:
         torch.set_num_threads(int(trainer.threads))
     task_moves = hasattr(tasks.task_module(cfg.task.name).Task, "to")
@@ -93,7 +91,7 @@ def fit(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
         folder = RunFolder(Path(from_rank0(str(run_dir), ranks)), writer=ranks.main)
         state = folder.resume_state(cfg)
         torch.manual_seed(cfg.seed)
-        task = tasks.build(cfg)
+        task = tasks.build(cfg, data)
         return Training(cfg, task_length(trainer, task, cfg.task.name, ranks.main), task, folder, ranks,
                         device, state).run()
 

@@ -1,17 +1,20 @@
-"""Ensembles: a task trained as ``task.members`` networks, each from its own seed and validation fold, and one
-checkpoint that averages them.
+"""A training run: one network (``tasks.loop.fit``), or an ensemble of ``task.members`` networks, each from its own
+seed and validation fold, and one checkpoint that averages them.
 
-A task opts in with the fields ``members`` and ``member`` in its config and the module functions
-``combine_members(checkpoints: list[dict], cfg) -> dict`` (the members' best weights -> the ensemble's
-checkpoint entries: ``model_config`` and ``model``) and ``evaluate_ensemble(cfg, model) -> dict`` (the
-ensemble's own validation metrics where the members share one validation set, else ``{}``).
-:func:`fit_members` trains member k as a run of its own, ``task.member=k`` with :func:`member_seed`, in
-``<run>/members/<k>/`` (checkpoints, ``metrics.csv``, ``eval.json``; ``resume=true`` continues each, starts
-those never started, and a finished member only repeats its final evaluation; ``trainer.stop_after`` ends the
-run at the member it stops), then
-writes the ensemble to ``<run>/checkpoints/best.pt`` and ``last.pt`` (the same file: there is nothing to resume
-in it) and ``<run>/eval.json``: every member's final evaluation, their mean, and the ensemble's own
-(``ensemble_<metric>``) where the task gives one.
+:func:`train` is the run of ``python train.py``.  A task opts in to ensembles with the config fields ``members``
+and ``member`` and the module functions ``load_data(cfg)`` (the data, loaded once per run and shared by the
+members: each trains and validates on index sets of it, its fold), ``combine_members(checkpoints, cfg)`` (the
+members' best weights -> the ensemble's ``nn.Module``) and ``evaluate_ensemble(cfg, model, data)`` (the
+ensemble's own validation metrics where the members share one validation set, else ``{}``).  What the members
+compute once per run goes in ``data.baselines`` (a dict; member processes send theirs back).
+
+Member k trains as a run of its own (:func:`member_config`: ``task.member=k``, the seed :func:`member_seed`) in
+``<run>/members/<k>/`` (checkpoints, ``metrics.csv``, ``eval.json``; ``resume=true`` continues each, starts those
+never started (a run whose first member never started has nothing to resume: refused), and a finished member only
+repeats its final evaluation; ``trainer.stop_after`` stops every member
+there and writes no ensemble), then the ensemble goes to ``<run>/checkpoints/best.pt`` and ``last.pt`` (the same
+file: there is nothing to resume in it) and ``<run>/eval.json``: every member's final evaluation, their mean, and
+the ensemble's own (``ensemble_<metric>``) where the task gives one.
 
 Refitting: a task whose members validate on folds of their own training data may define ``refits(cfg) -> bool``
 (true: refit) and the config field ``task.refit_steps``.  Member k's fold then only chooses how long it trains
@@ -19,21 +22,44 @@ Refitting: a task whose members validate on folds of their own training data may
 many steps with the learning-rate schedule ending there and no validation (:func:`refit_config`), in
 ``<run>/members/<k>/refit/``; the ensemble takes those weights.  Each member's figures in ``eval.json`` stay its
 fold's (the refit has no held-out data left to score on).
+
+Where the members train (the same weights bit for bit every way: each run is seeded and alone in its process):
+- ``trainer.member_workers=1``: one after another in this process;
+- ``trainer.member_workers=N``: N processes of this machine (forked on Linux, else spawned and given the data
+  once), handed the members' runs and refits as they free up;
+- under ``torchrun`` with ``task.members`` > 1: the ranks split the members (rank r trains members r, r + W, ...,
+  each alone, no DDP) and rank 0 writes the ensemble once every rank has finished; with one member the ranks train
+  it together under DDP (``tasks.loop``);
+- ``task.member=k``: member k alone (and its refit) in the run folder: one job of a sweep over the members
+  (``-m task.member=0,1,...`` with ``hydra.sweep.subdir=members/${task.member}``, e.g. one SLURM job each); a
+  run with ``resume=true`` in the sweep's folder then writes the ensemble (docs/training.md).
 """
 from __future__ import annotations
 
 import copy
+import datetime
 import json
-from collections.abc import Callable
+import sys
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+import torch
+import torch.distributed as dist
 from omegaconf import DictConfig, OmegaConf
 
 import tasks
-from models.checkpoint import MODEL_BUILDERS, load_checkpoint
-from tasks.distributed import launched_ranks
+from models.checkpoint import load_checkpoint
+from tasks.distributed import Ranks, launched_ranks
+from tasks.loop import fit
 from tasks.run_folder import RunFolder
+
+# Member processes are forks of the run's where the system has them (Linux: no second import of torch, the data
+# shared as it is; the run's process has computed nothing with torch's thread pool yet), else spawned.
+START_METHOD = "fork" if sys.platform == "linux" else "spawn"
+# A rank that trains its members alone waits for the others' at the end: as long as their members take.
+MEMBER_WAIT = datetime.timedelta(days=7)
 
 
 def member_seed(seed: int, member: int) -> int:
@@ -43,11 +69,6 @@ def member_seed(seed: int, member: int) -> int:
     if member == 0:
         return int(seed)
     return int(np.random.SeedSequence([int(seed), member]).generate_state(1, np.uint32)[0])
-
-
-def trains_members(cfg: DictConfig) -> bool:
-    """Whether ``cfg`` trains an ensemble (``task.members`` > 1 and no ``task.member`` chosen)."""
-    return int(cfg.task.get("members", 1)) > 1 and cfg.task.get("member") is None
 
 
 def member_config(cfg: DictConfig, member: int) -> DictConfig:
@@ -71,9 +92,8 @@ def refit_config(cfg: DictConfig, steps: int) -> DictConfig:
 
 
 def started(cfg: DictConfig, folder: Path) -> DictConfig:
-    """``cfg`` for the run in ``folder``: with ``resume=true`` a member after the first (or a refit) that never
-    saved a checkpoint there starts afresh, the others continue (the first member has nothing to continue only
-    when the whole run has not: that resume stays refused)."""
+    """``cfg`` for the run in ``folder``: with ``resume=true`` a run that never saved a checkpoint there starts
+    afresh, the others continue."""
     if not cfg.resume or RunFolder(folder, writer=False).last.exists():
         return cfg
     out = copy.deepcopy(cfg)
@@ -81,53 +101,164 @@ def started(cfg: DictConfig, folder: Path) -> DictConfig:
     return out
 
 
-def fit_members(cfg: DictConfig, run_dir: Path, fit_one: Callable[[DictConfig, Path], dict]) -> dict[str, float]:
-    """Train every member of ``cfg`` with ``fit_one`` (``tasks.loop.fit``) and write the ensemble (module
-    docstring); returns the ensemble's evaluation: the members' mean of each metric, each member's under
-    ``member<k>_<metric>``."""
-    count, main = int(cfg.task.members), launched_ranks().main
+def train(cfg: DictConfig, run_dir: Path) -> dict[str, float]:
+    """Run ``cfg`` in ``run_dir`` (module docstring); returns the final evaluation (the ensemble's: the members'
+    mean of each metric, each member's under ``member<k>_<metric>``) on the writing process, else ``{}``."""
     module = tasks.task_module(cfg.task.name)
+    count = int(cfg.task.get("members", 1))
+    if count == 1:
+        return fit(cfg, run_dir)
+    first = int(cfg.task.get("member") or 0)
+    first_dir = run_dir if cfg.task.get("member") is not None else member_folders(run_dir, [0])[0]
+    if launched_ranks().main:  # the run's first member has nothing to resume: refused before the data load
+        RunFolder(first_dir, writer=False).resume_state(member_config(cfg, first))
+    data = module.load_data(cfg)
     refits = getattr(module, "refits", lambda _: False)(cfg)
-    evaluations, checkpoints = [], []
-    for k in range(count):
-        member_cfg = member_config(cfg, k)
-        if main:
+    if cfg.task.get("member") is not None:  # one member alone, in the run folder itself
+        member = int(cfg.task.member)
+        finished = run_members(cfg, {member: run_dir}, data, refits, Ranks())
+        return json.loads(RunFolder(run_dir, writer=False).evaluation.read_text()) if finished else {}
+    ranks = launched_ranks()
+    if ranks.world == 1:
+        if not run_members(cfg, member_folders(run_dir, range(count)), data, refits, ranks):
+            return {}
+        return write_ensemble(cfg, run_dir, data, module)
+    # torchrun: rank r trains members r, r + W, ... alone (no DDP), then rank 0 writes the ensemble.
+    dist.init_process_group("gloo", timeout=MEMBER_WAIT)
+    try:
+        box = [str(run_dir)]
+        dist.broadcast_object_list(box, src=0)  # the ranks after 0 run in hydra.run.dir=. (train.py)
+        run_dir = Path(box[0])
+        own = Ranks(0, 1, ranks.local_rank)
+        finished = run_members(cfg, member_folders(run_dir, range(ranks.rank, count, ranks.world)), data, refits, own)
+        finished = all(f for f in gather(finished))
+    finally:
+        dist.destroy_process_group()
+    if not (ranks.main and finished):
+        return {}
+    return write_ensemble(cfg, run_dir, data, module)
+
+
+def gather(value) -> list:
+    """Every rank's ``value`` (a picklable object), on every rank."""
+    out = [None] * dist.get_world_size()
+    dist.all_gather_object(out, value)
+    return out
+
+
+def member_folders(run_dir: Path, members) -> dict[int, Path]:
+    return {k: run_dir / "members" / str(k) for k in members}
+
+
+def run_members(cfg: DictConfig, folders: dict[int, Path], data, refits: bool, ranks: Ranks) -> bool:
+    """Train the members ``folders`` names (member -> its folder), and each one's refit once its fold has chosen
+    the length, on ``trainer.member_workers`` processes; whether every one finished (``trainer.stop_after``)."""
+    workers = min(int(cfg.trainer.member_workers), len(folders))
+    if workers > 1:
+        pool = ProcessPoolExecutor(workers, mp_context=get_context(START_METHOD), initializer=start_worker,
+                                   initargs=(data, int(cfg.trainer.threads), ranks))
+        cfg = copy.deepcopy(cfg)
+        cfg.trainer.progress = False  # several bars on one terminal
+    else:
+        pool = InProcess(data, ranks)
+    count, finished = int(cfg.task.members), True
+    with pool:
+        jobs: dict[Future, tuple[int, DictConfig | None]] = {}
+        for k, folder in folders.items():
+            member_cfg = member_config(cfg, k)
             print(f"{cfg.task.name}: member {k + 1} of {count} (seed {member_cfg.seed}, validation fold {k})",
                   flush=True)
-        member_dir = run_dir / "members" / str(k)
-        evaluations.append(fit_one(started(member_cfg, member_dir) if k else member_cfg, member_dir))
-        if not RunFolder(member_dir, writer=False).evaluation.is_file():  # trainer.stop_after ended it
-            return {}
-        if refits:
-            # Every rank reads rank 0's evaluation (written before the ranks left the member's process group).
-            steps = int(json.loads(RunFolder(member_dir, writer=False).evaluation.read_text())["best_step"])
-            if main:
+            jobs[pool.submit(fit_in_worker, started(member_cfg, folder), folder)] = (k, member_cfg)
+        while jobs:
+            done, _ = wait(jobs, return_when=FIRST_COMPLETED)
+            for job in [job for job in jobs if job in done]:  # in the order they were handed out
+                k, member_cfg = jobs.pop(job)
+                baselines = job.result()
+                if hasattr(data, "baselines"):
+                    data.baselines.update(baselines)
+                folder = folders[k] if member_cfg is not None else folders[k] / "refit"
+                if not RunFolder(folder, writer=False).evaluation.is_file():  # trainer.stop_after ended it
+                    finished = False
+                    continue
+                if member_cfg is None or not refits:
+                    continue
+                steps = int(json.loads(RunFolder(folder, writer=False).evaluation.read_text())["best_step"])
                 print(f"{cfg.task.name}: member {k + 1} refits on all the data for {steps} steps (its best on fold "
                       f"{k})", flush=True)
-            member_dir = member_dir / "refit"
-            fit_one(started(refit_config(member_cfg, steps), member_dir), member_dir)
-            if not RunFolder(member_dir, writer=False).evaluation.is_file():
-                return {}
-            evaluations[-1]["refit_steps"] = float(steps)
-        if not main:  # rank 0 alone writes (tasks.loop)
-            continue
-        member = RunFolder(member_dir, writer=False)
+                refit = folders[k] / "refit"
+                jobs[pool.submit(fit_in_worker, started(refit_config(member_cfg, steps), refit), refit)] = (k, None)
+    return finished
+
+
+# In a member process: the run's data (given once, start_worker) and that the process trains alone.
+WORKER: dict = {}
+
+
+def start_worker(data, threads: int, ranks: Ranks) -> None:
+    torch.set_num_threads(threads)
+    WORKER.update(data=data, ranks=ranks)
+
+
+def fit_in_worker(cfg: DictConfig, folder: Path) -> dict:
+    """``tasks.loop.fit`` of ``cfg`` in ``folder`` on the worker's data; returns what it added to
+    ``data.baselines``."""
+    data = WORKER["data"]
+    fit(cfg, folder, data, WORKER["ranks"])
+    return getattr(data, "baselines", {})
+
+
+class InProcess:
+    """The executor of ``trainer.member_workers=1``: each job runs in this process as it is submitted."""
+
+    def __init__(self, data, ranks: Ranks):
+        self.state = {"data": data, "ranks": ranks}
+
+    def submit(self, fn, *args) -> Future:
+        future: Future = Future()
+        saved = dict(WORKER)
+        WORKER.update(self.state)
+        try:
+            future.set_result(fn(*args))
+        except Exception as e:  # noqa: BLE001  (re-raised by result(), as a process pool does)
+            future.set_exception(e)
+        finally:
+            WORKER.clear()
+            WORKER.update(saved)
+        return future
+
+    def __enter__(self) -> InProcess:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+
+def write_ensemble(cfg: DictConfig, run_dir: Path, data, module) -> dict[str, float]:
+    """Average the finished members of ``run_dir`` (their refits' weights where they refit) into the run's
+    checkpoint, score it where the task can (``evaluate_ensemble``) and write ``eval.json``."""
+    count = int(cfg.task.members)
+    evaluations, checkpoints = [], []
+    for folder in member_folders(run_dir, range(count)).values():
+        evaluation = json.loads(RunFolder(folder, writer=False).evaluation.read_text())
+        refit = RunFolder(folder / "refit", writer=False)
+        if refit.evaluation.is_file():
+            evaluation["refit_steps"] = float(evaluation["best_step"])
+            folder = refit.path
+        evaluations.append(evaluation)
+        member = RunFolder(folder, writer=False)
         checkpoints.append(load_checkpoint(member.best if member.best.is_file() else member.last, cfg.task.name))
-    if not main:
-        return {}
-    folder = RunFolder(run_dir)
-    combined = module.combine_members(checkpoints, cfg)
-    state = {"task": cfg.task.name, **combined, "step": max(int(c.get("step", 0)) for c in checkpoints),
+    ensemble = module.combine_members(checkpoints, cfg)
+    state = {"task": cfg.task.name, "model_config": ensemble.config, "model": ensemble.state_dict(),
+             "step": max(int(c.get("step", 0)) for c in checkpoints),
              "config": OmegaConf.to_container(cfg, resolve=True)}
+    folder = RunFolder(run_dir)
     folder.save_last(state)
     folder.save_best(state, float(np.mean([e.get("val_loss", np.nan) for e in evaluations])))
     keys = sorted({key for e in evaluations for key in e})
     final = {key: float(np.mean([e[key] for e in evaluations if key in e])) for key in keys}
     for k, evaluation in enumerate(evaluations):
         final.update({f"member{k}_{key}": float(value) for key, value in evaluation.items()})
-    model = MODEL_BUILDERS[cfg.task.name](combined["model_config"])
-    model.load_state_dict(combined["model"])
-    own = module.evaluate_ensemble(member_config(cfg, 0), model)
+    own = module.evaluate_ensemble(cfg, ensemble, data)
     final.update({f"ensemble_{key}": float(value) for key, value in own.items()})
     folder.write_evaluation(final)
     means = ", ".join(f"{key} {final[key]:.5g}" for key in ("rmse", "rmse_vs_ridge") if key in final)

@@ -25,8 +25,8 @@ from base.files import write_text
 from models.checkpoint import load_checkpoint, save_checkpoint
 
 # Config keys a resumed run may change (configs/trainer/*.yaml): they steer the run, not what it computes.
-RUN_CONTROL_KEYS = ("resume", "trainer.stop_after", "trainer.progress", "trainer.threads", "trainer.log_every",
-                    "trainer.eval_every", "trainer.checkpoint_every", "trainer.device")
+RUN_CONTROL_KEYS = ("resume", "trainer.stop_after", "trainer.progress", "trainer.threads", "trainer.member_workers",
+                    "trainer.log_every", "trainer.eval_every", "trainer.checkpoint_every", "trainer.device")
 # ... except when validation chooses what is trained (early stopping, best weights): then it may not change.
 SELECTION_KEYS = ("trainer.eval_every",)
 

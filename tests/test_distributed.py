@@ -173,11 +173,18 @@ def test_cuda_and_mixed_precision_are_refused_without_a_gpu(tmp_path):
     assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
 
 
-def test_an_unknown_device_is_one_line_and_status_2(capsys):
-    with pytest.raises(SystemExit) as stop:
-        train.check_command_line(["trainer.device=gpu"])
-    assert stop.value.code == 2
-    assert capsys.readouterr().err == "error: trainer: device is 'gpu', expected one of auto, cpu, cuda\n"
+def test_an_unknown_device_or_key_is_one_line_and_status_2(tmp_path, capsys, monkeypatch):
+    """What the trainer's schema refuses and what hydra cannot compose: one line, status 2, no run folder."""
+    monkeypatch.setattr(sys, "argv", ["train.py"])
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "0")  # train.run sets it; restored after the test
+    quiet = ["hydra/job_logging=disabled", "hydra/hydra_logging=disabled", f"hydra.run.dir={tmp_path / 'run'}"]
+    device = "error: trainer: device is 'gpu', expected one of auto, cpu, cuda\n"
+    for argv, message in ((["trainer.device=gpu"], device), (["trainer.speed=2"], "error: Could not override")):
+        with pytest.raises(SystemExit) as stop:
+            train.run([*argv, *quiet])
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and err.startswith(message) and err.count("\n") == 1, err
+        assert not (tmp_path / "run").exists()
 
 
 def test_a_cuda_run_of_a_task_that_cannot_move_is_refused(monkeypatch):
@@ -203,6 +210,25 @@ def test_a_sweep_under_torchrun_and_untied_slurm_tasks_are_refused(monkeypatch, 
     monkeypatch.setenv("WORLD_SIZE", "4")  # torchrun's workers inside a SLURM step
     monkeypatch.setenv("RANK", "3")
     assert distributed.launched_ranks() == distributed.Ranks(3, 4, 0)
+
+
+def test_two_ranks_split_an_ensembles_members(tmp_path):
+    """torchrun with task.members=3: rank 0 trains members 0 and 2, rank 1 member 1 (each alone, with its refit),
+    and rank 0 writes the ensemble of the one-process run, bit for bit."""
+    from test_larynx_ensemble import small_ensemble
+    from test_larynx_transformer import TINY_LARYNX, tiny_config
+
+    from tasks.members import train as train_run
+
+    overrides = small_ensemble(tmp_path / "pairs")
+    train_run(tiny_config(overrides, data=[]), tmp_path / "one")
+    result = run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+                  str(REPO / "train.py"), *TINY_LARYNX, *overrides, f"hydra.run.dir={tmp_path / 'two'}"], tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one", "pairs", "two"]  # nothing in the working folder
+    for name in ("checkpoints/best.pt", "members/1/refit/checkpoints/last.pt"):
+        one, two = (load_checkpoint(tmp_path / run / name)["model"] for run in ("one", "two"))
+        assert max_difference(one, two) == 0, name
 
 
 # --------------------------------------------------------------------------- sweeps

@@ -2,6 +2,8 @@
 batched step, trained on their own seeds and validation folds, written as one checkpoint."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -20,7 +22,7 @@ from models.larynx import (
     predict_tau,
     trimmed_mean,
 )
-from tasks.members import member_config, member_seed, refit_config
+from tasks.members import member_config, member_seed, refit_config, train
 from tests.larynx_reference import state_bytes
 
 SIZES = LarynxTransformerConfig(d_model=16, n_heads=2, d_ff=24, window=8, expression_dilations=[1, 2],
@@ -134,8 +136,8 @@ def test_validation_folds_partition_the_takes_and_fold_zero_is_the_single_split(
     held = [sorted({p.take for p in val}) for _, val in folds]
     assert all(len(h) == 2 for h in held)
     assert sorted(t for h in held for t in h) == sorted({p.take for p in pairs})  # each take validated once
-    for train, val in folds:
-        assert not {p.take for p in train} & {p.take for p in val}
+    for training, val in folds:
+        assert not {p.take for p in training} & {p.take for p in val}
     with pytest.raises(InputError, match="validation fold 5 of 5"):
         split_by_take(pairs, 0.2, 0, fold=5, folds=5)
 
@@ -163,7 +165,7 @@ def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp
                  "model.window=16", "trainer.max_steps=150", "trainer.eval_every=30", "trainer.restore_best=true",
                  "model.dropout=0", "task.members=3"]
     cfg = tiny_config(overrides, data=[])
-    result = loop.fit(cfg, tmp_path / "run")
+    result = train(cfg, tmp_path / "run")
     out = capsys.readouterr().out
     assert "member 3 of 3" in out and "3 members, each scored on its own validation, mean rmse" in out
     validated = [{s.take for s in Task(tiny_config([*overrides, f"task.member={k}"], data=[])).val} for k in range(3)]
@@ -190,8 +192,8 @@ def test_an_ensemble_trains_as_members_on_their_folds_and_loads_as_one_model(tmp
     one = loop.fit(tiny_config([*overrides[:-1], "task.members=1"], data=[]), tmp_path / "one")
     assert one["rmse"] == pytest.approx(result["member0_rmse"], rel=1e-6)
 
-    train = shifted_channel_pairs(None, 6, 400, seed=1, other_level=0.2)
-    weights, _ = fit_ridge(train, 30, [1.0, 100.0, 1e4])
+    training = shifted_channel_pairs(None, 6, 400, seed=1, other_level=0.2)
+    weights, _ = fit_ridge(training, 30, [1.0, 100.0, 1e4])
     ridge = rmse([window_features(s.psi, 30) @ weights for s in heldout], heldout)
     ensemble_rmse = rmse(predictions, heldout)
     assert ensemble_rmse <= np.mean([rmse(a, heldout) for a in alone]) + 1e-9
@@ -213,7 +215,7 @@ def test_an_ensemble_of_synthetic_runs_is_scored_on_their_shared_validation(tmp_
     data = ["data.train_subjects=2", "data.sequences_per_subject=1", "data.seconds=8", "data.heldout_subjects=1",
             "data.heldout_sequences_per_subject=1"]
     cfg = tiny_config(["trainer.max_steps=4", "task.members=2"], data)
-    result = loop.fit(cfg, tmp_path / "run")
+    result = train(cfg, tmp_path / "run")
     ensemble = load_model(tmp_path / "run" / "checkpoints" / "best.pt", "larynx_transformer")[0]
     task = Task(tiny_config(["trainer.max_steps=4", "task.members=2", "task.member=0"], data))
     predictions = [predict_tau(ensemble, s.psi, s.subject if s.subject in ensemble.subjects else None)
@@ -239,8 +241,8 @@ def test_resuming_an_ensemble_continues_its_members_and_starts_the_ones_never_st
     overrides = ["data=pairs", f"data.path={tmp_path / 'pairs'}", "data.val_fraction=0.5", "task.crop=48",
                  "model.window=16", "trainer.max_steps=20", "trainer.eval_every=10", "trainer.restore_best=true",
                  "trainer.checkpoint_every=5", "model.dropout=0", "task.members=2"]
-    loop.fit(tiny_config(overrides, data=[]), tmp_path / "whole")
-    loop.fit(tiny_config(overrides, data=[]), tmp_path / "run")
+    train(tiny_config(overrides, data=[]), tmp_path / "whole")
+    train(tiny_config(overrides, data=[]), tmp_path / "run")
     refit = tmp_path / "run" / "members" / "0" / "refit"
     steps = torch.load(refit / "checkpoints" / "last.pt", weights_only=True)["step"]
     shutil.rmtree(tmp_path / "run" / "members" / "1")
@@ -250,7 +252,41 @@ def test_resuming_an_ensemble_continues_its_members_and_starts_the_ones_never_st
     half.trainer.stop_after = 5
     assert loop.fit(half, refit) == {}  # the refit stopped at step 5
     assert torch.load(refit / "checkpoints" / "last.pt", weights_only=True)["step"] == 5 < steps
-    loop.fit(tiny_config([*overrides, "resume=true"], data=[]), tmp_path / "run")
+    train(tiny_config([*overrides, "resume=true"], data=[]), tmp_path / "run")
     whole, resumed = (torch.load(tmp_path / r / "checkpoints" / "best.pt", weights_only=True)["model"]
                       for r in ("whole", "run"))
     assert whole.keys() == resumed.keys() and all(torch.equal(whole[k], resumed[k]) for k in whole)
+
+
+def small_ensemble(folder: Path) -> list[str]:
+    """train.py overrides (beside TINY_LARYNX) of three small members on four takes written to ``folder``,
+    refitting after 8 steps at most."""
+    shifted_channel_pairs(folder, 4, 100, seed=1, other_level=0.2)
+    return ["data=pairs", f"data.path={folder}", "data.val_fraction=0.3", "task.crop=24", "model.window=8",
+            "model.d_model=16", "model.n_heads=2", "model.d_ff=24", "model.expression_dilations=[1,2]",
+            "model.smoothing_frames=16", "task.batch_size=4", "task.ridge_window=0.1", "trainer.max_steps=8",
+            "trainer.eval_every=4", "trainer.restore_best=true", "task.members=3"]
+
+
+def test_members_trained_in_parallel_processes_equal_the_sequential_run(tmp_path):
+    """trainer.member_workers=2 (two spawned processes share the three members and their refits) and one job per
+    member (task.member=k, then resume=true): every member's weights, the refits', the ensemble's and eval.json's
+    figures equal the one-process run's bit for bit."""
+    overrides = small_ensemble(tmp_path / "pairs")
+    sequential = train(tiny_config(overrides, data=[]), tmp_path / "one")
+    parallel = train(tiny_config([*overrides, "trainer.member_workers=2"], data=[]), tmp_path / "two")
+    # one job per member (a sweep over task.member, e.g. on SLURM), then a resumed run writes the ensemble
+    for k in range(3):
+        train(tiny_config([*overrides, f"task.member={k}"], data=[]), tmp_path / "jobs" / "members" / str(k))
+    jobs = train(tiny_config([*overrides, "resume=true"], data=[]), tmp_path / "jobs")
+    timing = [key for key in sequential if key.endswith("train_seconds")]
+    for result in (parallel, jobs):
+        assert {k: v for k, v in result.items() if k not in timing} == {
+            k: v for k, v in sequential.items() if k not in timing}
+    files = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").rglob("*.pt"))
+    assert len(files) == 2 + 3 * 4  # the ensemble's best and last, each member's and each refit's
+    for name in files:
+        one, two, three = (torch.load(tmp_path / run / name, weights_only=True)["model"]
+                           for run in ("one", "two", "jobs"))
+        for other in (two, three):
+            assert one.keys() == other.keys() and all(torch.equal(one[k], other[k]) for k in one), name

@@ -36,7 +36,7 @@ Modules: :mod:`.config` (sizes, data fields), :mod:`.attention`, :mod:`.encoder`
 per-frame version of its module beside it), :mod:`.folding` (weights laid out for one frame, the members of an
 ensemble stacked), :mod:`.model` (the network, :func:`build_member`, :func:`transfer_weights`,
 :func:`predict_tau`), :mod:`.ensemble` (K networks averaged, :func:`build_model` for either), :mod:`.streaming`
-(:class:`LarynxStream`, one or K members per call), :mod:`.compat` (checkpoints of options this version removed).
+(:class:`LarynxStream`, one or K members per call).
 
 Conventions (shapes carry a batch B and frames T):
 - psi [B,T,55]: expression weights in ``data.expressions.EXPRESSION_NAMES`` order, at
@@ -47,7 +47,6 @@ Conventions (shapes carry a batch B and frames T):
 - subject [B] long: index into the style table, 0 = unknown subject (average style); names are
   ``model.subjects`` (index i+1 is ``subjects[i]``).
 """
-from .compat import RemovedOptionError, current_config, removed_options
 from .config import SIZES, LarynxDataFields, LarynxTransformerConfig
 from .ensemble import LarynxEnsemble, build_model, ensemble_of
 from .model import LarynxTransformer, build_member, predict_tau, transfer_weights
@@ -55,6 +54,5 @@ from .streaming import LarynxStream, trimmed_mean
 
 __all__ = [
     "SIZES", "LarynxDataFields", "LarynxEnsemble", "LarynxStream", "LarynxTransformer", "LarynxTransformerConfig",
-    "RemovedOptionError", "build_member", "build_model", "current_config", "ensemble_of", "predict_tau",
-    "removed_options", "transfer_weights", "trimmed_mean",
+    "build_member", "build_model", "ensemble_of", "predict_tau", "transfer_weights", "trimmed_mean",
 ]

@@ -15,7 +15,6 @@ from base.errors import InputError
 from data.expressions import NUM_EXPRESSIONS
 
 from .block import Block
-from .compat import current_config
 from .config import DATA_KEYS, SIZES, LarynxDataFields, LarynxTransformerConfig
 from .encoder import ExpressionEncoder
 from .streaming import LarynxStream, generate
@@ -93,10 +92,7 @@ class LarynxTransformer(nn.Module):
         """tau [B,T] in UV units from psi [B,T,55] at ``fps`` and style indices subject [B] long (None: the
         unknown subject's style for all); frame t depends on psi[:, :t+1] only."""
         memory, _ = self.expression(psi)
-        # The same token base for every frame, gathered rather than broadcast: the style's gradient then sums the
-        # frames in the order it always did, and a seed trains the weights it trained before, bit for bit.
-        every_frame = torch.zeros(memory.shape[1], dtype=torch.long, device=memory.device)
-        x = self.token_base(memory.shape[0], subject)[:, None, :][:, every_frame] + memory
+        x = self.token_base(memory.shape[0], subject)[:, None, :] + memory  # the same base for every frame
         for block in self.blocks:
             x = block(x, memory)
         return self.to_tau(self.head(x)[..., 0] * self.output_gain(x.shape[0], subject))
@@ -112,10 +108,8 @@ class LarynxTransformer(nn.Module):
 
 def build_member(model_config: dict) -> LarynxTransformer:
     """The network of ``model_config``: exactly the fields of :class:`LarynxTransformerConfig`
-    (the sizes) and of :class:`LarynxDataFields` (from the training data), after :mod:`.compat` drops the
-    options this version removed (at their neutral values); missing or unknown keys, or sizes the config
-    rejects, are a ValueError (a :class:`~models.larynx.compat.RemovedOptionError` for a removed option)."""
-    model_config = current_config(model_config)
+    (the sizes) and of :class:`LarynxDataFields` (from the training data); missing or unknown keys (an option
+    an earlier version had), or sizes the config rejects, are a ValueError."""
     missing = [k for k in SIZES + DATA_KEYS if k not in model_config]
     unknown = sorted(set(model_config) - set(SIZES) - set(DATA_KEYS))
     if missing or unknown:

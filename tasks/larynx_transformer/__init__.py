@@ -1,7 +1,8 @@
 """Task: train the expression -> larynx transformer (``models.larynx``).
 
 Modules: :mod:`.config` (the hydra schemas of the task, its data kinds and the model sizes), :mod:`.data` (the
-training and validation sequences of ``data=synthetic`` and ``data=pairs``, the crop), :mod:`.baselines` (ridge
+training and validation sequences of ``data=synthetic`` and ``data=pairs``, loaded once per run and shared by an
+ensemble's members as index sets; the crop), :mod:`.baselines` (ridge
 and the RMSE), :mod:`.task` (:class:`Task`: model, batches, loss, evaluation, warm start; :func:`combine_members`:
 the ensemble of ``task.members`` networks, ``tasks.members``).
 
@@ -19,18 +20,19 @@ Data (``cfg.data``, hydra group ``data``; every sequence is resampled to ``data.
 from .baselines import fit_ridge, ridge_groups, rmse, window_features
 from .config import DATA_KINDS, LarynxTaskConfig, PairsData, SyntheticData
 from .data import (
+    LarynxData,
     crop_for,
+    load_data,
     load_sequences,
     synthetic_options,
     synthetic_training_sequences,
-    usable_sequences,
     with_cues,
 )
 from .task import Task, combine_members, evaluate_ensemble, member_weights, refits, warm_start
 
 __all__ = [
-    "DATA_KINDS", "LarynxTaskConfig", "PairsData", "SyntheticData", "Task", "combine_members", "crop_for",
-    "evaluate_ensemble", "fit_ridge", "member_weights", "load_sequences", "refits", "ridge_groups", "rmse",
-    "synthetic_options", "synthetic_training_sequences", "usable_sequences", "warm_start", "window_features",
+    "DATA_KINDS", "LarynxData", "LarynxTaskConfig", "PairsData", "SyntheticData", "Task", "combine_members",
+    "crop_for", "evaluate_ensemble", "fit_ridge", "load_data", "load_sequences", "member_weights", "refits",
+    "ridge_groups", "rmse", "synthetic_options", "synthetic_training_sequences", "warm_start", "window_features",
     "with_cues",
 ]

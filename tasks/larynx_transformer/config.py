@@ -25,10 +25,11 @@ class LarynxTaskConfig:
     # capture moves elsewhere, are not leant on (real-regime benchmark, seeds 0-3: better or equal on every
     # family, benchmarks/README.md).
     input_sparsity: float = 0.01
-    # trainer.max_steps null: epochs passes over the training frames, within [min_steps, max_steps].
+    # The length the task chooses (trainer.max_steps null): epochs passes over the training frames, within
+    # [fewest_steps, most_steps].
     epochs: float = 300.0
-    min_steps: int = 600
-    max_steps: int = 2000
+    fewest_steps: int = 600
+    most_steps: int = 2000
     eval_batch: int = 32          # validation sequences decoded together
     ridge_window: float = 1.0     # seconds of psi the ridge baseline sees
     ridge_lambdas: list[float] = field(default_factory=lambda: [0.01, 0.1, 1.0, 10.0, 100.0, 1000.0, 1e4, 1e5])

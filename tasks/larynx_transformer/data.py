@@ -1,5 +1,8 @@
 """The sequences of ``task=larynx_transformer``: training and validation sets of each data kind, and the crops.
 
+A run loads its sequences once (:func:`load_data`: :class:`LarynxData`); an ensemble's members share them, each
+training and validating on index sets of them (its fold).
+
 - ``data=synthetic`` (:class:`SyntheticData`): ``data.synthetic_larynx`` sequences.  Validation is on new
   recordings of the training subjects (with their style) and on held-out subjects drawn from a *shifted*
   generator (``data.heldout_shift``);
@@ -8,6 +11,7 @@
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass, field
 
 from base.cli import to_dataclass
 from base.errors import InputError
@@ -22,18 +26,23 @@ from data.synthetic_larynx import (
     split_subjects,
 )
 
-from .config import DATA_KINDS, SyntheticData
+from .config import DATA_KINDS, PairsData, SyntheticData
+
+
+def data_settings(data) -> SyntheticData | PairsData:
+    """``cfg.data`` as the dataclass of its kind; InputError for another kind."""
+    kind = data.kind if hasattr(data, "kind") else data["kind"]
+    if kind not in DATA_KINDS:
+        raise InputError(f"larynx_transformer: data.kind '{kind}' not supported ({' or '.join(DATA_KINDS)})")
+    return data if isinstance(data, DATA_KINDS[kind]) else to_dataclass(data, DATA_KINDS[kind], where="data")
 
 
 def load_sequences(data, fold: int = 0, folds: int = 1) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
     """(training, validation) sequences for ``cfg.data``, at ``data.fps``; ``data=pairs`` validates on fold ``fold``
     of ``folds`` of the takes (an ensemble's member, :func:`data.splits.split_by_file`), ``data=synthetic`` on its
     own validation people whatever the fold."""
-    kind = data.kind if hasattr(data, "kind") else data["kind"]
-    if kind not in DATA_KINDS:
-        raise InputError(f"larynx_transformer: data.kind '{kind}' not supported ({' or '.join(DATA_KINDS)})")
-    data = data if isinstance(data, DATA_KINDS[kind]) else to_dataclass(data, DATA_KINDS[kind], where="data")
-    if kind == "synthetic":
+    data = data_settings(data)
+    if data.kind == "synthetic":
         train_ids, heldout_ids = split_subjects(data.train_subjects, data.heldout_subjects)
         options = synthetic_options(data)
         train = synthetic_training_sequences(data, data.fps)
@@ -43,8 +52,49 @@ def load_sequences(data, fold: int = 0, folds: int = 1) -> tuple[list[LarynxSequ
         new_people = make_dataset(heldout_ids, data.heldout_sequences_per_subject, data.seconds, data.fps, data.seed,
                                   **{**options, "ranges": with_cues(heldout_ranges(data.heldout_shift), data)})
         return train, new_takes + new_people
-    pairs = load_pairs(data.path, data.fps)
+    return split_sequences(data, load_pairs(data.path, data.fps), fold, folds)
+
+
+def split_sequences(data: PairsData, pairs: list[LarynxSequence], fold: int, folds: int
+                    ) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
+    """(training, validation) of ``pairs`` for fold ``fold`` of ``folds``: :func:`data.pairs.split_by_take`."""
     return split_by_take(pairs, float(data.val_fraction), int(data.split_seed), f"take in {data.path}", fold, folds)
+
+
+@dataclass
+class LarynxData:
+    """Every sequence of a run and each member's (training, validation) indices into them.
+
+    ``folds[k]`` is member k's; on ``data=synthetic`` every member has the same (``shared_validation``).
+    ``baselines`` holds the baselines scored so far (``task.baselines``: the ridge is fitted once per training
+    set in a run).
+    """
+
+    sequences: list[LarynxSequence]
+    folds: list[tuple[list[int], list[int]]]
+    shared_validation: bool
+    baselines: dict[tuple, dict[str, float]] = field(default_factory=dict)
+
+    def fold(self, member: int) -> tuple[list[LarynxSequence], list[LarynxSequence]]:
+        """(training, validation) sequences of member ``member``."""
+        train, val = self.folds[member]
+        return [self.sequences[i] for i in train], [self.sequences[i] for i in val]
+
+
+def load_data(cfg) -> LarynxData:
+    """The sequences of ``cfg.data`` and the folds of the ``task.members`` members (:func:`load_sequences`)."""
+    members, data = int(cfg.task.get("members", 1)), data_settings(cfg.data)
+    if data.kind == "synthetic":
+        train, val = load_sequences(data)
+        indices = (list(range(len(train))), list(range(len(train), len(train) + len(val))))
+        return LarynxData(train + val, [indices] * members, True)
+    sequences = load_pairs(data.path, data.fps)
+    index = {id(s): i for i, s in enumerate(sequences)}
+    folds = []
+    for k in range(members):
+        train, val = split_sequences(data, sequences, k, members)
+        folds.append(([index[id(s)] for s in train], [index[id(s)] for s in val]))
+    return LarynxData(sequences, folds, False)
 
 
 def with_cues(ranges: GeneratorRanges, data: SyntheticData) -> GeneratorRanges:
@@ -82,15 +132,3 @@ def crop_for(train: list[LarynxSequence], crop: int, window: int) -> int:
         print(f"larynx_transformer: every training sequence is shorter than task.crop={crop} frames: crops of "
               f"{longest} frames (the longest)")
     return min(crop, longest)
-
-
-def usable_sequences(train: list[LarynxSequence], crop: int) -> list[LarynxSequence]:
-    """The training sequences of at least ``crop`` frames; the shorter ones are reported (printed) and
-    dropped (:func:`crop_for` leaves at least one)."""
-    usable = [s for s in train if len(s) >= crop]
-    short = [s for s in train if len(s) < crop]
-    if short:
-        print(f"larynx_transformer: {len(short)} of {len(train)} training sequences are shorter than the crop of "
-              f"{crop} frames and are not used (lower task.crop to use them): "
-              + ", ".join(f"{s.name} ({len(s)} frames)" for s in short))
-    return usable

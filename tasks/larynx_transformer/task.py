@@ -7,8 +7,8 @@ recordings many channels co-vary with tau by chance, and a new take moves them e
 normalised tau plus ``velocity_weight`` times the MSE of its frame differences.
 
 Length of training: with ``trainer.max_steps`` null the task chooses it from the data
-(:meth:`Task.max_steps`: ``task.epochs`` passes over the training frames, within
-``[task.min_steps, task.max_steps]``); validation (``evaluate``) returns ``val_loss``, the streamed
+(:meth:`Task.steps_for_data`: ``task.epochs`` passes over the training frames, within
+``[task.fewest_steps, task.most_steps]``); validation (``evaluate``) returns ``val_loss``, the streamed
 validation RMSE, for early stopping and best-checkpoint selection.
 
 Starting point: random weights, or with ``task.init_from`` another run's (``pretrained``: the shipped model,
@@ -30,17 +30,17 @@ from data.pairs import LarynxSequence
 from models.checkpoint import load_checkpoint
 from models.larynx import (
     SIZES,
+    LarynxEnsemble,
     LarynxTransformerConfig,
     build_member,
     ensemble_of,
-    removed_options,
     transfer_weights,
 )
 from models.pretrained import default_checkpoint
 
 from .baselines import fit_ridge, rmse, window_features
 from .config import LarynxTaskConfig
-from .data import crop_for, load_sequences, usable_sequences
+from .data import LarynxData, crop_for, load_data
 
 
 def member_weights(state: dict, member: int) -> tuple[dict, dict]:
@@ -68,10 +68,10 @@ def warm_start(model, init_from: str, member: int = 0) -> None:
         raise InputError(f"task.init_from={init_from}: {e}") from None
     source_config, source = member_weights(state, member)
     state = {"model_config": source_config, "model": source}
-    removed = removed_options(state["model_config"])
-    if removed:
-        raise InputError(f"task.init_from={init_from}: {path} was trained with {', '.join(removed)}, removed in "
-                         f"this version: its weights do not fit this model")
+    try:
+        build_member(source_config)  # a config of options this version does not have is refused
+    except ValueError as e:
+        raise InputError(f"task.init_from={init_from}: {path} does not fit this model: {e}") from None
     try:
         transfer_weights(model, state["model"])
     except ValueError as e:
@@ -85,16 +85,15 @@ def warm_start(model, init_from: str, member: int = 0) -> None:
               f"at {fps:g} fps: its filters, counted in frames, start at {source_fps / fps:.2f} times its durations")
 
 
-def combine_members(checkpoints: list[dict], cfg: DictConfig) -> dict:
-    """The ensemble's checkpoint entries (``tasks.members``): ``model_config`` and ``model`` of the
-    :class:`~models.larynx.LarynxEnsemble` of the members' weights (their subject tables joined)."""
+def combine_members(checkpoints: list[dict], cfg: DictConfig) -> LarynxEnsemble:
+    """The :class:`~models.larynx.LarynxEnsemble` of the members' weights (their subject tables joined;
+    ``tasks.members``)."""
     members = []
     for state in checkpoints:
         member = build_member(state["model_config"])
         member.load_state_dict(state["model"])
         members.append(member)
-    ensemble = ensemble_of(members)
-    return {"model_config": ensemble.config, "model": ensemble.state_dict()}
+    return ensemble_of(members)
 
 
 def refits(cfg: DictConfig) -> bool:
@@ -103,38 +102,134 @@ def refits(cfg: DictConfig) -> bool:
     return bool(cfg.task.get("refit", False)) and cfg.data.kind == "pairs"
 
 
-def evaluate_ensemble(cfg: DictConfig, ensemble) -> dict[str, float]:
+def evaluate_ensemble(cfg: DictConfig, ensemble, data: LarynxData) -> dict[str, float]:
     """The ensemble's own validation metrics where its members share one validation set (``data=synthetic``);
     ``{}`` on ``data=pairs``, where each member validates on another fold that the others trained on."""
-    if cfg.data.kind != "synthetic":
+    if not data.shared_validation:
         return {}
-    task = Task(cfg)
-    task.model = ensemble.eval()
+    settings: LarynxTaskConfig = to_dataclass(cfg.task, LarynxTaskConfig, where="task")
+    train, val = training_indices(data, 0, settings, int(cfg.model.window), refit=False)[0], data.folds[0][1]
+    ensemble.eval()
     with torch.no_grad():
-        return task.evaluate(final=True)
+        return evaluate(ensemble, [data.sequences[i] for i in val],
+                        baselines(data, train, val, settings, float(cfg.data.fps)), settings.eval_batch, final=True)
+
+
+def training_indices(data: LarynxData, member: int, settings: LarynxTaskConfig, window: int, refit: bool
+                     ) -> tuple[list[int], int]:
+    """(member ``member``'s training indices into ``data.sequences``, the crop): its fold's training sequences
+    (and validation ones for a refit) of at least the crop (:func:`.data.crop_for`); the shorter are reported
+    (printed) and not used."""
+    train, val = data.folds[member]
+    indices = train + val if refit else train
+    crop = crop_for([data.sequences[i] for i in indices], int(settings.crop), window)
+    short = [data.sequences[i] for i in indices if len(data.sequences[i]) < crop]
+    if short:
+        print(f"larynx_transformer: {len(short)} of {len(indices)} training sequences are shorter than the crop of "
+              f"{crop} frames and are not used (lower task.crop to use them): "
+              + ", ".join(f"{s.name} ({len(s)} frames)" for s in short))
+    return [i for i in indices if len(data.sequences[i]) >= crop], crop
+
+
+def baselines(data: LarynxData, train: list[int], val: list[int], settings: LarynxTaskConfig, fps: float
+              ) -> dict[str, float]:
+    """Validation RMSE of ridge regression on ``task.ridge_window`` seconds of psi and of the training mean, over
+    all validation sequences and over those of known and of new subjects; computed once per training and
+    validation set in a run (kept in ``data.baselines``)."""
+    window = max(1, int(round(settings.ridge_window * fps)))
+    key = (tuple(train), tuple(val), window, tuple(settings.ridge_lambdas))
+    if key in data.baselines:
+        return data.baselines[key]
+    train_sequences, val_sequences = [data.sequences[i] for i in train], [data.sequences[i] for i in val]
+    weights, lam = fit_ridge(train_sequences, window, list(settings.ridge_lambdas))
+    ridge = [window_features(s.psi, window) @ weights for s in val_sequences]
+    tau_mean = float(np.concatenate([s.tau for s in train_sequences]).astype(np.float64).mean())
+    mean = [np.full(len(s), tau_mean) for s in val_sequences]
+    out = {"ridge_rmse": rmse(ridge, val_sequences), "mean_rmse": rmse(mean, val_sequences), "ridge_lambda": lam,
+           "ridge_window_frames": float(window)}
+    subjects = {s.subject for s in train_sequences if s.subject is not None}
+    for group, members in subject_groups(val_sequences, subjects).items():
+        out[f"ridge_rmse_{group}"] = rmse([ridge[i] for i in members], [val_sequences[i] for i in members])
+    data.baselines[key] = out
+    return out
+
+
+def subject_groups(val: list[LarynxSequence], subjects) -> dict[str, list[int]]:
+    """Indices of the validation sequences of ``subjects`` (seen in training) and of others, when both occur."""
+    known = [i for i, s in enumerate(val) if s.subject in subjects]
+    new = [i for i, s in enumerate(val) if s.subject not in subjects]
+    return {"known_subjects": known, "new_subjects": new} if known and new else {}
+
+
+def predict(model, sequences: list[LarynxSequence], batch: int) -> list[np.ndarray]:
+    """Autoregressive (streamed) tau of ``model`` for each sequence, ``batch`` at a time (shorter ones padded at
+    the end); a sequence's subject's style when ``model`` knows them, else the average style."""
+    out = []
+    device = next(model.parameters()).device
+    for first in range(0, len(sequences), batch):
+        group = sequences[first:first + batch]
+        length = max(len(s) for s in group)
+        psi = np.stack([np.concatenate([s.psi, np.repeat(s.psi[-1:], length - len(s), 0)]) for s in group])
+        subject = torch.tensor([model.subject_index(s.subject) if s.subject in model.subjects else 0 for s in group],
+                               device=device)
+        tau = model.generate(torch.from_numpy(psi).to(device), subject).cpu().numpy()
+        out += [tau[i, :len(s)] for i, s in enumerate(group)]  # causal: padding cannot change these
+    return out
+
+
+def evaluate(model, val: list[LarynxSequence], base: dict[str, float], batch: int, final: bool = False
+             ) -> dict[str, float]:
+    """Validation metrics of ``model`` on ``val`` beside the baselines ``base`` (:func:`baselines`): ``rmse``
+    (streamed, UV units), the baselines, their ratio, and ``val_loss`` (= ``rmse``; lower is better: what early
+    stopping and best-checkpoint selection compare); with validation subjects both seen and unseen in training,
+    each group's ``rmse_<group>`` and ridge too.  ``final``: printed as a table."""
+    model.eval()
+    predictions = predict(model, val, batch)
+    model_rmse = rmse(predictions, val)
+    metrics = {"val_loss": model_rmse, "rmse": model_rmse, "ridge_rmse": base["ridge_rmse"],
+               "mean_rmse": base["mean_rmse"], "rmse_vs_ridge": model_rmse / base["ridge_rmse"]}
+    groups = subject_groups(val, set(model.subjects))
+    for group, members in groups.items():
+        metrics[f"rmse_{group}"] = rmse([predictions[i] for i in members], [val[i] for i in members])
+        metrics[f"ridge_rmse_{group}"] = base[f"ridge_rmse_{group}"]
+    if final:
+        frames = sum(len(s) for s in val)
+        print(f"\ntau RMSE on {len(val)} validation sequences ({frames} frames at {model.fps:g} fps), UV units:")
+        ridge = f"ridge, {base['ridge_window_frames']:.0f}-frame window (lambda {base['ridge_lambda']:g})"
+        for label, value in (("transformer (streamed)", model_rmse), (ridge, base["ridge_rmse"]),
+                             ("training mean", base["mean_rmse"])):
+            print(f"  {label:<42}{value:.5f}")
+        print(f"  transformer / ridge = {metrics['rmse_vs_ridge']:.3f}")
+        for group, members in groups.items():
+            print(f"  {group.replace('_', ' ')} ({len(members)} sequences): transformer "
+                  f"{metrics[f'rmse_{group}']:.5f}, ridge {metrics[f'ridge_rmse_{group}']:.5f}, ratio "
+                  f"{metrics[f'rmse_{group}'] / metrics[f'ridge_rmse_{group}']:.3f}")
+    return metrics
 
 
 class Task:
     """See the module docstring; the protocol is in ``tasks/__init__.py``."""
 
-    def __init__(self, cfg: DictConfig):
+    def __init__(self, cfg: DictConfig, data: LarynxData | None = None):
         self.cfg = cfg
         self.settings: LarynxTaskConfig = to_dataclass(cfg.task, LarynxTaskConfig, where="task")
         sizes: LarynxTransformerConfig = to_dataclass(cfg.model, LarynxTransformerConfig, where="model")
         self.fps = float(cfg.data.fps)
-        crop = int(self.settings.crop)
-        if crop <= sizes.window:
-            raise InputError(f"task.crop ({crop}) must exceed model.window ({sizes.window}) so training "
+        if self.settings.crop <= sizes.window:
+            raise InputError(f"task.crop ({self.settings.crop}) must exceed model.window ({sizes.window}) so training "
                              f"sees full attention windows")
         self.member = int(self.settings.member or 0)  # which member of the ensemble this task trains
-        train, self.val = load_sequences(cfg.data, self.member, int(self.settings.members))
-        if self.settings.refit_steps is not None:  # a member's refit (tasks.members): its fold is training data too
-            if cfg.data.kind != "pairs":
-                raise InputError(f"task.refit_steps={self.settings.refit_steps}: a refit trains on the validation "
-                                 f"takes of data=pairs; data={cfg.data.kind} validates on data of its own")
-            train = train + self.val
-        self.crop = crop = crop_for(train, crop, sizes.window)  # frames per training crop
-        self.train = usable_sequences(train, crop)  # the model, its normalisation and the baselines see these
+        refit = self.settings.refit_steps is not None  # a member's refit (tasks.members): its fold is training data
+        if refit and cfg.data.kind != "pairs":
+            raise InputError(f"task.refit_steps={self.settings.refit_steps}: a refit trains on the validation "
+                             f"takes of data=pairs; data={cfg.data.kind} validates on data of its own")
+        self.data = load_data(cfg) if data is None else data
+        self.train_indices, crop = training_indices(self.data, self.member, self.settings, sizes.window, refit)
+        self.val_indices = self.data.folds[self.member][1]
+        self.crop = crop  # frames per training crop
+        # the model, its normalisation and the baselines see these
+        self.train = [self.data.sequences[i] for i in self.train_indices]
+        self.val = [self.data.sequences[i] for i in self.val_indices]
         all_tau = np.concatenate([s.tau for s in self.train]).astype(np.float64)
         self.subjects = sorted({s.subject for s in self.train if s.subject is not None})
         self.tau_mean = float(all_tau.mean())
@@ -154,9 +249,8 @@ class Task:
         self.lengths = lengths
         self.crop_weights = (lengths - crop + 1).double()  # each sequence as often as it has crop positions
         self.seq_subject = torch.tensor([self.model.subject_index(s.subject) for s in self.train])
-        self._baselines: dict[str, float] | None = None
         trainer_steps = cfg.trainer.get("max_steps") if "trainer" in cfg else None
-        self.total_steps = int(trainer_steps) if trainer_steps else self.max_steps()
+        self.total_steps = int(trainer_steps) if trainer_steps else self.steps_for_data()
 
     def model_config(self) -> dict:
         return self._model_config
@@ -173,44 +267,36 @@ class Task:
         self.model.to(device)
         return self
 
-    def max_steps(self) -> int:
+    def steps_for_data(self) -> int:
         """Training steps for these data: ``task.epochs`` passes over the training frames, within
-        ``[task.min_steps, task.max_steps]`` (used when ``trainer.max_steps`` is null)."""
+        ``[task.fewest_steps, task.most_steps]`` (used when ``trainer.max_steps`` is null)."""
         s = self.settings
         frames = float(sum(len(sequence) for sequence in self.train))
         steps = s.epochs * frames / (s.batch_size * self.crop)
-        return int(min(s.max_steps, max(s.min_steps, round(steps))))
+        return int(min(s.most_steps, max(s.fewest_steps, round(steps))))
 
     # ------------------------------------------------------------------ training
-    # The random stream of a batch is fixed: a batch seed gives the crops it gave in every earlier version, so
-    # draws that no option uses any more are still made (and dropped) where they were.
 
-    def _positions(self, size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    def crop_positions(self, size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """Source positions [B,crop] (float, frames into the concatenated training arrays) of ``size`` crops,
         each starting anywhere in its sequence, between frames too, and each crop's sequence [B]."""
         sequence = torch.multinomial(self.crop_weights, size, replacement=True, generator=generator)
-        for _ in range(3):  # a crop's rate, and the period and phase of its modulation
-            torch.rand(size, 1, generator=generator, dtype=torch.float64)
-        offsets = torch.arange(self.crop, dtype=torch.float64)[None]  # [1,crop]
         last = (self.lengths[sequence] - 1).double()
-        start = torch.rand(size, generator=generator, dtype=torch.float64) * (last - offsets[:, -1])
+        start = torch.rand(size, generator=generator, dtype=torch.float64) * (last - (self.crop - 1))
+        offsets = torch.arange(self.crop, dtype=torch.float64)[None]  # [1,crop]
         return self.starts[sequence].double()[:, None] + start[:, None] + offsets, sequence
 
     def batch(self, step: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        """Random crops psi [B,crop,55] and tau [B,crop] of training sequences, and their styles subject [B]
-        (the unknown subject's for a share ``task.style_dropout`` of the crops)."""
+        """Random crops psi [B,crop,55] and tau [B,crop] of training sequences (:meth:`crop_positions`,
+        interpolated), and their styles subject [B] (the unknown subject's for a share ``task.style_dropout`` of the
+        crops)."""
         size = int(self.settings.batch_size)
-        positions, sequence = self._positions(size, generator)
+        positions, sequence = self.crop_positions(size, generator)
         low = positions.floor().long()
         high = torch.minimum(low + 1, (self.starts[sequence] + self.lengths[sequence] - 1)[:, None])
         frac = (positions - low.double()).float()
-        psi = torch.lerp(self.psi[low], self.psi[high], frac[..., None])
+        psi = torch.lerp(self.psi[low], self.psi[high], frac[..., None]).clamp(0.0, 1.0)  # weights are in [0, 1]
         tau = torch.lerp(self.tau[low], self.tau[high], frac)
-        channels = (size, 1, psi.shape[2])
-        torch.randn(channels, generator=generator)  # a gain, an offset and a dropout per expression channel
-        torch.randn(channels, generator=generator)
-        torch.rand(channels, generator=generator)
-        psi = psi.clamp(0.0, 1.0)  # expression weights are in [0, 1]
         subject = self.seq_subject[sequence]
         dropped = torch.rand(size, generator=generator) < self.settings.style_dropout
         return {"psi": psi, "tau": tau, "subject": torch.where(dropped, torch.zeros_like(subject), subject)}
@@ -227,68 +313,10 @@ class Task:
 
     # ------------------------------------------------------------------ evaluation
 
-    def predict(self, sequences: list[LarynxSequence]) -> list[np.ndarray]:
-        """Autoregressive (streamed) tau for each sequence, batched: shorter ones are padded at the end."""
-        out = []
-        batch = int(self.settings.eval_batch)
-        for first in range(0, len(sequences), batch):
-            group = sequences[first:first + batch]
-            length = max(len(s) for s in group)
-            psi = np.stack([np.concatenate([s.psi, np.repeat(s.psi[-1:], length - len(s), 0)]) for s in group])
-            subject = torch.tensor([self._style_index(s) for s in group], device=self.device)
-            tau = self.model.generate(torch.from_numpy(psi).to(self.device), subject).cpu().numpy()
-            out += [tau[i, :len(s)] for i, s in enumerate(group)]  # causal: padding cannot change these
-        return out
-
-    def _style_index(self, sequence: LarynxSequence) -> int:
-        """Style of a validation sequence: its subject's if seen in training, else the average style."""
-        return self.model.subject_index(sequence.subject) if sequence.subject in self.subjects else 0
-
     def baselines(self) -> dict[str, float]:
-        """Validation RMSE of ridge regression on a window of psi and of the training mean (computed once),
-        over all validation sequences and over those of known and of new subjects."""
-        if self._baselines is None:
-            window = max(1, int(round(self.settings.ridge_window * self.fps)))
-            weights, lam = fit_ridge(self.train, window, list(self.settings.ridge_lambdas))
-            self._ridge = [window_features(s.psi, window) @ weights for s in self.val]
-            mean = [np.full(len(s), self.tau_mean) for s in self.val]
-            self._baselines = {"ridge_rmse": rmse(self._ridge, self.val), "mean_rmse": rmse(mean, self.val),
-                               "ridge_lambda": lam, "ridge_window_frames": float(window)}
-            for group, members in self._groups().items():
-                self._baselines[f"ridge_rmse_{group}"] = rmse([self._ridge[i] for i in members],
-                                                              [self.val[i] for i in members])
-        return self._baselines
-
-    def _groups(self) -> dict[str, list[int]]:
-        """Indices of the validation sequences of subjects seen in training and of new ones, when both occur."""
-        known = [i for i, s in enumerate(self.val) if s.subject in self.subjects]
-        new = [i for i, s in enumerate(self.val) if s.subject not in self.subjects]
-        return {"known_subjects": known, "new_subjects": new} if known and new else {}
+        """The validation RMSE of the ridge and training-mean baselines (:func:`baselines`)."""
+        return baselines(self.data, self.train_indices, self.val_indices, self.settings, self.fps)
 
     def evaluate(self, final: bool = False) -> dict[str, float]:
-        """Validation metrics: ``rmse`` (streamed, UV units), the baselines, their ratio, and ``val_loss``
-        (= ``rmse``; lower is better: what early stopping and best-checkpoint selection compare); with
-        validation subjects both seen and unseen in training, each group's ``rmse_<group>`` and ridge too."""
-        self.model.eval()
-        predictions = self.predict(self.val)
-        model_rmse = rmse(predictions, self.val)
-        base = self.baselines()
-        metrics = {"val_loss": model_rmse, "rmse": model_rmse, "ridge_rmse": base["ridge_rmse"],
-                   "mean_rmse": base["mean_rmse"], "rmse_vs_ridge": model_rmse / base["ridge_rmse"]}
-        for group, members in self._groups().items():
-            metrics[f"rmse_{group}"] = rmse([predictions[i] for i in members], [self.val[i] for i in members])
-            metrics[f"ridge_rmse_{group}"] = base[f"ridge_rmse_{group}"]
-        if final:
-            frames = sum(len(s) for s in self.val)
-            print(f"\ntau RMSE on {len(self.val)} validation sequences ({frames} frames at {self.fps:g} fps), "
-                  f"UV units:")
-            ridge = f"ridge, {base['ridge_window_frames']:.0f}-frame window (lambda {base['ridge_lambda']:g})"
-            for label, value in (("transformer (streamed)", model_rmse), (ridge, base["ridge_rmse"]),
-                                 ("training mean", base["mean_rmse"])):
-                print(f"  {label:<42}{value:.5f}")
-            print(f"  transformer / ridge = {metrics['rmse_vs_ridge']:.3f}")
-            for group, members in self._groups().items():
-                print(f"  {group.replace('_', ' ')} ({len(members)} sequences): transformer "
-                      f"{metrics[f'rmse_{group}']:.5f}, ridge {metrics[f'ridge_rmse_{group}']:.5f}, ratio "
-                      f"{metrics[f'rmse_{group}'] / metrics[f'ridge_rmse_{group}']:.3f}")
-        return metrics
+        """The validation metrics of the model (:func:`evaluate`)."""
+        return evaluate(self.model, self.val, self.baselines(), self.settings.eval_batch, final)
