@@ -349,7 +349,7 @@ def test_crops_are_pairs_at_any_start_within_their_sequence(tmp_path):
     psi, tau = batch["psi"].double(), batch["tau"].double()
     # Linear interpolation keeps a linear relation exactly: the interpolated tau is still the pair of the psi.
     np.testing.assert_allclose(tau, 0.02 * psi[..., K["jawOpen"]] - 0.01 * psi[..., K["mouthSmile_L"]], atol=1e-6)
-    positions, sequence = task.crop_positions(64, torch.Generator().manual_seed(1))
+    positions, sequence = task._positions(64, torch.Generator().manual_seed(1))
     np.testing.assert_allclose(np.diff(positions.numpy(), axis=1), 1.0)  # plain crops, one frame a step
     first = positions[:, 0] - task.starts[sequence].double()
     assert (first >= 0).all() and (first + task.crop - 1 <= task.lengths[sequence] - 1).all()

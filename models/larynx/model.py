@@ -92,7 +92,10 @@ class LarynxTransformer(nn.Module):
         """tau [B,T] in UV units from psi [B,T,55] at ``fps`` and style indices subject [B] long (None: the
         unknown subject's style for all); frame t depends on psi[:, :t+1] only."""
         memory, _ = self.expression(psi)
-        x = self.token_base(memory.shape[0], subject)[:, None, :] + memory  # the same base for every frame
+        # The same token base for every frame, gathered rather than broadcast: the style's gradient then sums the
+        # frames in the order it always did, and a seed trains the weights it trained before, bit for bit.
+        every_frame = torch.zeros(memory.shape[1], dtype=torch.long, device=memory.device)
+        x = self.token_base(memory.shape[0], subject)[:, None, :][:, every_frame] + memory
         for block in self.blocks:
             x = block(x, memory)
         return self.to_tau(self.head(x)[..., 0] * self.output_gain(x.shape[0], subject))

@@ -276,27 +276,35 @@ class Task:
         return int(min(s.most_steps, max(s.fewest_steps, round(steps))))
 
     # ------------------------------------------------------------------ training
+    # The random stream of a batch is fixed: a batch seed gives the crops it gave in every earlier version, so
+    # draws that no option uses any more are still made (and dropped) where they were.
 
-    def crop_positions(self, size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    def _positions(self, size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """Source positions [B,crop] (float, frames into the concatenated training arrays) of ``size`` crops,
         each starting anywhere in its sequence, between frames too, and each crop's sequence [B]."""
         sequence = torch.multinomial(self.crop_weights, size, replacement=True, generator=generator)
-        last = (self.lengths[sequence] - 1).double()
-        start = torch.rand(size, generator=generator, dtype=torch.float64) * (last - (self.crop - 1))
+        for _ in range(3):  # a crop's rate, and the period and phase of its modulation
+            torch.rand(size, 1, generator=generator, dtype=torch.float64)
         offsets = torch.arange(self.crop, dtype=torch.float64)[None]  # [1,crop]
+        last = (self.lengths[sequence] - 1).double()
+        start = torch.rand(size, generator=generator, dtype=torch.float64) * (last - offsets[:, -1])
         return self.starts[sequence].double()[:, None] + start[:, None] + offsets, sequence
 
     def batch(self, step: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        """Random crops psi [B,crop,55] and tau [B,crop] of training sequences (:meth:`crop_positions`,
-        interpolated), and their styles subject [B] (the unknown subject's for a share ``task.style_dropout`` of the
-        crops)."""
+        """Random crops psi [B,crop,55] and tau [B,crop] of training sequences, and their styles subject [B]
+        (the unknown subject's for a share ``task.style_dropout`` of the crops)."""
         size = int(self.settings.batch_size)
-        positions, sequence = self.crop_positions(size, generator)
+        positions, sequence = self._positions(size, generator)
         low = positions.floor().long()
         high = torch.minimum(low + 1, (self.starts[sequence] + self.lengths[sequence] - 1)[:, None])
         frac = (positions - low.double()).float()
-        psi = torch.lerp(self.psi[low], self.psi[high], frac[..., None]).clamp(0.0, 1.0)  # weights are in [0, 1]
+        psi = torch.lerp(self.psi[low], self.psi[high], frac[..., None])
         tau = torch.lerp(self.tau[low], self.tau[high], frac)
+        channels = (size, 1, psi.shape[2])
+        torch.randn(channels, generator=generator)  # a gain, an offset and a dropout per expression channel
+        torch.randn(channels, generator=generator)
+        torch.rand(channels, generator=generator)
+        psi = psi.clamp(0.0, 1.0)  # expression weights are in [0, 1]
         subject = self.seq_subject[sequence]
         dropped = torch.rand(size, generator=generator) < self.settings.style_dropout
         return {"psi": psi, "tau": tau, "subject": torch.where(dropped, torch.zeros_like(subject), subject)}
