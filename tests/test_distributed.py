@@ -177,7 +177,9 @@ def test_an_unknown_device_or_key_is_one_line_and_status_2(tmp_path, capsys, mon
     """What the trainer's schema refuses and what hydra cannot compose: one line, status 2, no run folder."""
     monkeypatch.setattr(sys, "argv", ["train.py"])
     monkeypatch.setenv("HYDRA_FULL_ERROR", "0")  # train.run sets it; restored after the test
-    quiet = ["hydra/job_logging=disabled", "hydra/hydra_logging=disabled", f"hydra.run.dir={tmp_path / 'run'}"]
+    # hydra's "disabled" logging disables every logger that exists (disable_existing_loggers), in this process,
+    # for the tests that follow: "none" configures nothing
+    quiet = ["hydra/job_logging=none", "hydra/hydra_logging=none", f"hydra.run.dir={tmp_path / 'run'}"]
     device = "error: trainer: device is 'gpu', expected one of auto, cpu, cuda\n"
     for argv, message in ((["trainer.device=gpu"], device), (["trainer.speed=2"], "error: Could not override")):
         with pytest.raises(SystemExit) as stop:
